@@ -1,0 +1,6 @@
+//! nak: real-time soft-tissue deformation (Neural-Augmented Kelvinlet).
+//!
+//! The library behind the `nak` binary: meshes ([`mesh`]), the Kelvinlet prior ([`prior`]), the
+//! prediction engine ([`engine`]) and the gRPC service ([`serve`]).
+
+pub mod mesh;
