@@ -172,7 +172,7 @@ impl RawConfig {
             let positive = [m.shear_modulus_kpa, m.c10_kpa, m.c01_kpa]
                 .iter()
                 .all(|v| *v > 0.0);
-            if !positive || !(m.poisson_ratio > -1.0 && m.poisson_ratio < 0.5) {
+            if !(positive && m.poisson_ratio > -1.0 && m.poisson_ratio < 0.5) {
                 return Err(invalid(format!(
                     "regions.{name}: moduli must be positive and poisson_ratio in (-1, 0.5)"
                 )));
@@ -193,7 +193,11 @@ impl RawConfig {
                 "sampling.neighbours_min exceeds neighbours_max".into(),
             ));
         }
-        if s.grasp_regions.is_empty() || s.grasp_regions.iter().any(|r| !(r.weight >= 0.0)) {
+        if s.grasp_regions.is_empty()
+            || s.grasp_regions
+                .iter()
+                .any(|r| r.weight.is_nan() || r.weight < 0.0)
+        {
             return Err(invalid(
                 "sampling.grasp_regions must list regions with non-negative weights".into(),
             ));

@@ -144,10 +144,13 @@ impl Cursor<'_> {
         if self.pos >= self.data.len() {
             return Ok(None);
         }
+        let start = self.pos;
         let line = self.line()?;
         if !line.starts_with('$') {
+            self.pos = start;
             return Err(self.error(format!(
-                "expected a section header such as $Nodes, found {line:?}"
+                "expected a section header such as $Nodes, found {:?}",
+                truncate(&line)
             )));
         }
         Ok(Some(line))
@@ -463,7 +466,7 @@ mod tests {
     fn reports_the_line_of_a_bad_number() {
         let bad = ONE_TET.replace("0 1 0\n", "0 one 0\n");
         let err = parse(bad.as_bytes(), "bad.msh").unwrap_err().to_string();
-        assert!(err.contains("bad.msh: line 18"), "{err}");
+        assert!(err.contains("bad.msh: line 21"), "{err}");
         assert!(err.contains("\"one\""), "{err}");
     }
 
