@@ -3,4 +3,8 @@
 //! The library behind the `nak` binary: meshes ([`mesh`]), the Kelvinlet prior ([`prior`]), the
 //! prediction engine ([`engine`]) and the gRPC service ([`serve`]).
 
+pub mod engine;
 pub mod mesh;
+pub mod prior;
+pub mod proto;
+pub mod serve;

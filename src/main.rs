@@ -2,11 +2,16 @@
 
 mod cli;
 
-use std::path::PathBuf;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use anyhow::Context;
-use clap::{Parser, Subcommand};
-use nak::mesh::{self, MeshSource};
+use clap::{Parser, Subcommand, ValueEnum};
+use nak::engine::Engine;
+use nak::mesh::{self, MeshSource, TetMesh};
+use nak::serve::{self, ServeConfig};
+use tracing::info;
 
 #[derive(Parser)]
 #[command(
@@ -15,12 +20,25 @@ use nak::mesh::{self, MeshSource};
     about = "Real-time soft-tissue deformation server (Neural-Augmented Kelvinlet)"
 )]
 struct Cli {
+    /// Log format on stderr (filter with RUST_LOG, e.g. RUST_LOG=nak=debug).
+    #[arg(long, global = true, value_enum, default_value_t = LogFormat::Text)]
+    log_format: LogFormat,
     #[command(subcommand)]
     command: Command,
 }
 
+#[derive(Clone, Copy, ValueEnum)]
+enum LogFormat {
+    Text,
+    Json,
+}
+
 #[derive(Subcommand)]
 enum Command {
+    /// Serve deformation predictions over gRPC (defaults: embedded phantom liver, 127.0.0.1:50051).
+    Serve(ServeArgs),
+    /// Evaluate one set of grasps offline through the serving engine and write the field as .npy.
+    Predict(PredictArgs),
     /// Inspect meshes.
     Mesh {
         #[command(subcommand)]
@@ -28,27 +46,156 @@ enum Command {
     },
 }
 
+#[derive(clap::Args)]
+struct ServeArgs {
+    /// TOML file with any of: mesh, listen, max_displacement_mm, max_interaction_points,
+    /// max_message_bytes. Flags override it.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// A model directory (its default mesh) or an .msh file with model.toml beside it
+    /// [default: the embedded phantom liver].
+    #[arg(long)]
+    mesh: Option<PathBuf>,
+    /// Address to listen on [default: 127.0.0.1:50051; port 0 picks a free port].
+    #[arg(long)]
+    listen: Option<SocketAddr>,
+    /// Largest grasp displacement accepted, millimetres [default: 200].
+    #[arg(long)]
+    max_displacement_mm: Option<f64>,
+    /// Most interaction points (grasped nodes) per request [default: 256].
+    #[arg(long)]
+    max_interaction_points: Option<usize>,
+    /// Largest request message, bytes [default: 1048576].
+    #[arg(long)]
+    max_message_bytes: Option<usize>,
+}
+
+#[derive(clap::Args)]
+struct PredictArgs {
+    /// A model directory or an .msh file [default: the embedded phantom liver].
+    #[arg(long)]
+    mesh: Option<PathBuf>,
+    /// Model to evaluate.
+    #[arg(long, default_value = "kelvinlet")]
+    model: String,
+    /// JSON: {"grasps": [{"nodes": [...], "displacement": [dx, dy, dz]}, {"point": [x, y, z],
+    /// "radius": r, "displacement": [...]}]}, metres.
+    #[arg(long)]
+    grasps: PathBuf,
+    /// Output .npy, float32 (N, 3).
+    #[arg(long)]
+    out: PathBuf,
+    /// Write the surface nodes only (Mesh.surface_nodes order) instead of every node.
+    #[arg(long)]
+    surface_only: bool,
+}
+
 #[derive(Subcommand)]
 enum MeshCommand {
     /// Load and validate a mesh, and print a summary: counts, bounds, regions, node sets, quality.
     Info {
-        /// A model directory (its default mesh) or an .msh file with model.toml beside it; omitted: the
-        /// embedded phantom liver.
+        /// A model directory (its default mesh) or an .msh file with model.toml beside it
+        /// [default: the embedded phantom liver].
         path: Option<PathBuf>,
     },
 }
 
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
+    init_logging(cli.log_format);
     match cli.command {
+        Command::Serve(args) => serve(args),
+        Command::Predict(args) => predict(args),
         Command::Mesh {
             command: MeshCommand::Info { path },
         } => {
-            let source = MeshSource::from_arg(path.as_deref());
-            let mesh = mesh::load(&source).with_context(|| format!("cannot load mesh {source}"))?;
-            print_or_pipe_closed(|out| cli::mesh_info::print(out, &mesh))?;
+            let mesh = load_mesh(path.as_deref())?;
+            print_or_pipe_closed(|out| cli::mesh_info::print(out, &mesh))
         }
     }
+}
+
+fn init_logging(format: LogFormat) {
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    let builder = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr);
+    match format {
+        LogFormat::Text => builder.init(),
+        LogFormat::Json => builder.json().init(),
+    }
+}
+
+fn load_mesh(path: Option<&Path>) -> anyhow::Result<TetMesh> {
+    let source = MeshSource::from_arg(path);
+    mesh::load(&source).with_context(|| format!("cannot load mesh {source}"))
+}
+
+fn serve_config(args: ServeArgs) -> anyhow::Result<ServeConfig> {
+    let mut config = match &args.config {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("cannot read {}", path.display()))?;
+            toml::from_str(&text)
+                .with_context(|| format!("{}: invalid serve configuration", path.display()))?
+        }
+        None => ServeConfig::default(),
+    };
+    config.mesh = args.mesh.or(config.mesh);
+    config.listen = args.listen.unwrap_or(config.listen);
+    config.max_displacement_mm = args
+        .max_displacement_mm
+        .unwrap_or(config.max_displacement_mm);
+    config.max_interaction_points = args
+        .max_interaction_points
+        .unwrap_or(config.max_interaction_points);
+    config.max_message_bytes = args.max_message_bytes.unwrap_or(config.max_message_bytes);
+    Ok(config)
+}
+
+fn serve(args: ServeArgs) -> anyhow::Result<()> {
+    let config = serve_config(args)?;
+    let mesh = Arc::new(load_mesh(config.mesh.as_deref())?);
+    let engine = Arc::new(Engine::new(mesh, config.limits()));
+    let runtime = tokio::runtime::Runtime::new().context("cannot start the async runtime")?;
+    runtime.block_on(async {
+        let listener = tokio::net::TcpListener::bind(config.listen)
+            .await
+            .with_context(|| format!("cannot listen on {}", config.listen))?;
+        // Scripts and tests read this line to find a port chosen with --listen 127.0.0.1:0.
+        info!(address = %listener.local_addr()?, "listening");
+        serve::run(
+            engine,
+            listener,
+            config.max_message_bytes,
+            serve::shutdown_signal(),
+        )
+        .await?;
+        anyhow::Ok(())
+    })
+}
+
+fn predict(args: PredictArgs) -> anyhow::Result<()> {
+    let mesh = Arc::new(load_mesh(args.mesh.as_deref())?);
+    let engine = Engine::new(mesh, Default::default());
+    let grasps = cli::predict::read_grasps(&args.grasps)?;
+    let prediction = cli::predict::run(&engine, &args.model, grasps, args.surface_only)?;
+    cli::predict::write_npy(&args.out, &prediction.displacements)?;
+    let largest = prediction
+        .displacements
+        .chunks(3)
+        .map(|u| (u[0] * u[0] + u[1] * u[1] + u[2] * u[2]).sqrt())
+        .fold(0.0f32, f32::max);
+    println!(
+        "{}: {} nodes, {} interaction points, largest displacement {:.2} mm, {:.0} µs → {}",
+        prediction.model,
+        prediction.displacements.len() / 3,
+        prediction.interaction_points,
+        largest * 1e3,
+        prediction.timing.total_us,
+        args.out.display()
+    );
     Ok(())
 }
 

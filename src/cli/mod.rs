@@ -1,1 +1,2 @@
 pub mod mesh_info;
+pub mod predict;

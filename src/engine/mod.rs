@@ -1,0 +1,251 @@
+//! The prediction engine: validates a request, resolves its grasps, runs the model, and returns the
+//! displacements of the selected nodes. `nak serve` and `nak predict` both go through it.
+
+pub mod grasp;
+pub mod model;
+
+use std::collections::BTreeMap;
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+pub use grasp::Grasp;
+pub use model::{DeformationModel, KelvinletModel, ModelError, ModelInfo, ModelKind, StageTiming};
+
+use crate::mesh::TetMesh;
+use crate::prior::{InteractionPoints, NodeCloud, Workspace};
+
+/// What the server accepts.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Limits {
+    /// Largest grasp displacement magnitude (metres).
+    pub max_displacement_m: f64,
+    /// Most interaction points (grasped nodes) in one request.
+    pub max_interaction_points: usize,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Self {
+            max_displacement_m: 0.2,
+            max_interaction_points: 256,
+        }
+    }
+}
+
+/// Why a request was refused; [`EngineError::kind`] maps it onto a gRPC status code.
+#[derive(Debug, thiserror::Error)]
+pub enum EngineError {
+    #[error("{0}")]
+    NotFound(String),
+    #[error("{0}")]
+    InvalidArgument(String),
+    #[error("model {model} failed: {source}")]
+    Model {
+        model: String,
+        #[source]
+        source: ModelError,
+    },
+}
+
+impl EngineError {
+    pub fn invalid(message: impl Into<String>) -> Self {
+        EngineError::InvalidArgument(message.into())
+    }
+}
+
+/// Which nodes a prediction answers for.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub enum Selection {
+    #[default]
+    All,
+    Surface,
+    List(Vec<u32>),
+}
+
+/// One prediction request, independent of the wire format.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Request {
+    /// Empty means [`KelvinletModel::NAME`].
+    pub model: String,
+    /// Name or content hash of the mesh the client expects; empty means the served mesh.
+    pub mesh: String,
+    pub grasps: Vec<Grasp>,
+    pub selection: Selection,
+}
+
+/// Microseconds per stage of one prediction.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Timing {
+    pub resolve_us: f32,
+    pub prior_us: f32,
+    pub network_us: f32,
+    pub total_us: f32,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct Prediction {
+    pub model: String,
+    /// Row-major (n, 3) f32 displacements of the selected nodes.
+    pub displacements: Vec<f32>,
+    /// The node of each row, unless the selection was every node.
+    pub node_ids: Option<Vec<u32>>,
+    pub interaction_points: usize,
+    pub timing: Timing,
+}
+
+/// Per-request scratch buffers, pooled so that steady-state requests allocate only their response.
+#[derive(Default)]
+struct Scratch {
+    points: InteractionPoints,
+    workspace: Workspace,
+}
+
+pub struct Engine {
+    mesh: Arc<TetMesh>,
+    limits: Limits,
+    models: BTreeMap<String, Arc<dyn DeformationModel>>,
+    all_nodes: NodeCloud,
+    surface_nodes: NodeCloud,
+    scratch: Mutex<Vec<Scratch>>,
+}
+
+impl Engine {
+    /// An engine serving `mesh` with the Kelvinlet prior.
+    pub fn new(mesh: Arc<TetMesh>, limits: Limits) -> Self {
+        let all_nodes = NodeCloud::new(mesh.positions.iter().copied());
+        let surface_nodes = NodeCloud::new(
+            mesh.surface_nodes
+                .iter()
+                .map(|&n| mesh.positions[n as usize]),
+        );
+        let kelvinlet: Arc<dyn DeformationModel> = Arc::new(KelvinletModel::new(&mesh));
+        Self {
+            models: BTreeMap::from([(KelvinletModel::NAME.to_owned(), kelvinlet)]),
+            mesh,
+            limits,
+            all_nodes,
+            surface_nodes,
+            scratch: Mutex::new(Vec::new()),
+        }
+    }
+
+    pub fn mesh(&self) -> &Arc<TetMesh> {
+        &self.mesh
+    }
+
+    pub fn limits(&self) -> Limits {
+        self.limits
+    }
+
+    pub fn models(&self) -> impl Iterator<Item = &ModelInfo> {
+        self.models.values().map(|m| m.info())
+    }
+
+    /// Whether `name` (a mesh name or content hash) is the served mesh; empty always is.
+    pub fn serves_mesh(&self, name: &str) -> bool {
+        name.is_empty() || name == self.mesh.config.name || name == self.mesh.content_hash
+    }
+
+    pub fn predict(&self, request: &Request) -> Result<Prediction, EngineError> {
+        let start = Instant::now();
+        if !self.serves_mesh(&request.mesh) {
+            return Err(EngineError::NotFound(format!(
+                "mesh {:?} is not served here; this server serves {:?} ({})",
+                request.mesh, self.mesh.config.name, self.mesh.content_hash
+            )));
+        }
+        let name = if request.model.is_empty() {
+            KelvinletModel::NAME
+        } else {
+            request.model.as_str()
+        };
+        let model = self.models.get(name).ok_or_else(|| {
+            EngineError::NotFound(format!(
+                "unknown model {name:?}; available: {}",
+                self.models.keys().cloned().collect::<Vec<_>>().join(", ")
+            ))
+        })?;
+        let mut scratch = self.take_scratch();
+        let result = self.run(model.as_ref(), request, &mut scratch, start);
+        self.return_scratch(scratch);
+        result
+    }
+
+    fn run(
+        &self,
+        model: &dyn DeformationModel,
+        request: &Request,
+        scratch: &mut Scratch,
+        start: Instant,
+    ) -> Result<Prediction, EngineError> {
+        grasp::resolve(
+            &self.mesh,
+            &self.limits,
+            &request.grasps,
+            &mut scratch.points,
+        )?;
+        let (cloud, node_ids) = match &request.selection {
+            Selection::All => (None, None),
+            Selection::Surface => (None, Some(self.mesh.surface_nodes.clone())),
+            Selection::List(nodes) => {
+                let n = self.mesh.node_count();
+                if nodes.is_empty() {
+                    return Err(EngineError::invalid("the node selection is an empty list"));
+                }
+                if let Some(bad) = nodes.iter().find(|&&v| v as usize >= n) {
+                    return Err(EngineError::invalid(format!(
+                        "selected node {bad} does not exist: the mesh has {n} nodes"
+                    )));
+                }
+                let cloud = NodeCloud::new(nodes.iter().map(|&v| self.mesh.positions[v as usize]));
+                (Some(cloud), Some(nodes.clone()))
+            }
+        };
+        let cloud = match (&cloud, &request.selection) {
+            (Some(c), _) => c,
+            (None, Selection::Surface) => &self.surface_nodes,
+            (None, _) => &self.all_nodes,
+        };
+        let resolved = Instant::now();
+        let mut displacements = vec![0.0f32; 3 * cloud.len()];
+        let mut stages = StageTiming::default();
+        model
+            .predict(
+                &scratch.points,
+                cloud,
+                &mut scratch.workspace,
+                &mut displacements,
+                &mut stages,
+            )
+            .map_err(|source| EngineError::Model {
+                model: model.info().name.clone(),
+                source,
+            })?;
+        let timing = Timing {
+            resolve_us: (resolved - start).as_secs_f32() * 1e6,
+            prior_us: stages.prior_us,
+            network_us: stages.network_us,
+            total_us: start.elapsed().as_secs_f32() * 1e6,
+        };
+        Ok(Prediction {
+            model: model.info().name.clone(),
+            displacements,
+            node_ids,
+            interaction_points: scratch.points.len(),
+            timing,
+        })
+    }
+
+    fn take_scratch(&self) -> Scratch {
+        self.scratch
+            .lock()
+            .map(|mut pool| pool.pop().unwrap_or_default())
+            .unwrap_or_default()
+    }
+
+    fn return_scratch(&self, scratch: Scratch) {
+        if let Ok(mut pool) = self.scratch.lock() {
+            pool.push(scratch);
+        }
+    }
+}

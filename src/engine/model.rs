@@ -1,0 +1,109 @@
+//! Models the engine can evaluate, behind one trait: the Kelvinlet prior now, exact and neural models
+//! later.
+
+use std::collections::BTreeMap;
+
+use crate::mesh::TetMesh;
+use crate::prior::{InteractionPoints, Kelvinlet, NodeCloud, SolveError, Workspace};
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ModelKind {
+    Prior,
+    Exact,
+    Neural,
+}
+
+/// What `ListModels` says about a model.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ModelInfo {
+    pub name: String,
+    pub kind: ModelKind,
+    /// Content hash of the mesh it serves.
+    pub mesh: String,
+    /// `linear` or `nonlinear` for models trained on one regime; empty for analytic priors.
+    pub regime: String,
+    pub metadata: BTreeMap<String, String>,
+}
+
+/// Microseconds spent in a model's stages.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct StageTiming {
+    pub prior_us: f32,
+    pub network_us: f32,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ModelError {
+    #[error(transparent)]
+    Solve(#[from] SolveError),
+}
+
+/// A deformation model over one mesh.
+pub trait DeformationModel: Send + Sync {
+    fn info(&self) -> &ModelInfo;
+
+    /// Writes the displacement at every node of `cloud` (row-major (N, 3)) into `out`.
+    fn predict(
+        &self,
+        points: &InteractionPoints,
+        cloud: &NodeCloud,
+        workspace: &mut Workspace,
+        out: &mut [f32],
+        timing: &mut StageTiming,
+    ) -> Result<(), ModelError>;
+}
+
+/// The Kelvinlet prior as a served model, named `kelvinlet`.
+pub struct KelvinletModel {
+    info: ModelInfo,
+    prior: Kelvinlet,
+}
+
+impl KelvinletModel {
+    pub const NAME: &'static str = "kelvinlet";
+
+    pub fn new(mesh: &TetMesh) -> Self {
+        let p = mesh.config.prior;
+        let metadata = BTreeMap::from([
+            ("poisson_ratio".to_owned(), p.poisson_ratio.to_string()),
+            ("epsilon_m".to_owned(), p.epsilon.to_string()),
+            ("lambda".to_owned(), p.lambda.to_string()),
+            (
+                "description".to_owned(),
+                "rescaled regularized Kelvinlet (DESIGN.md §3), closed-form multi-point solve"
+                    .to_owned(),
+            ),
+        ]);
+        Self {
+            info: ModelInfo {
+                name: Self::NAME.to_owned(),
+                kind: ModelKind::Prior,
+                mesh: mesh.content_hash.clone(),
+                regime: String::new(),
+                metadata,
+            },
+            prior: Kelvinlet::new(p),
+        }
+    }
+}
+
+impl DeformationModel for KelvinletModel {
+    fn info(&self) -> &ModelInfo {
+        &self.info
+    }
+
+    fn predict(
+        &self,
+        points: &InteractionPoints,
+        cloud: &NodeCloud,
+        workspace: &mut Workspace,
+        out: &mut [f32],
+        timing: &mut StageTiming,
+    ) -> Result<(), ModelError> {
+        let start = std::time::Instant::now();
+        self.prior.solve(points, workspace)?;
+        self.prior.evaluate(&workspace.coefficients, cloud, out);
+        timing.prior_us = start.elapsed().as_secs_f32() * 1e6;
+        Ok(())
+    }
+}

@@ -1,0 +1,125 @@
+//! `nak serve`: the gRPC server, with health checking, reflection and graceful shutdown.
+
+mod convert;
+mod service;
+mod status_codes;
+
+use std::net::SocketAddr;
+use std::sync::Arc;
+
+use serde::Deserialize;
+use tokio::net::TcpListener;
+use tokio_stream::wrappers::TcpListenerStream;
+use tracing::info;
+
+pub use convert::f32_bytes;
+pub use service::DeformationService;
+
+use crate::engine::{Engine, Limits};
+use crate::proto::v1::FILE_DESCRIPTOR_SET;
+use crate::proto::v1::deformation_server::DeformationServer;
+
+/// Server settings, from flags or a TOML file (`nak serve --config serve.toml`).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ServeConfig {
+    /// `--mesh`: a model directory or an .msh file; absent: the embedded phantom liver.
+    pub mesh: Option<std::path::PathBuf>,
+    pub listen: SocketAddr,
+    /// Largest grasp displacement accepted, in millimetres.
+    pub max_displacement_mm: f64,
+    pub max_interaction_points: usize,
+    /// Largest request message accepted, in bytes; larger ones get RESOURCE_EXHAUSTED.
+    pub max_message_bytes: usize,
+}
+
+impl Default for ServeConfig {
+    fn default() -> Self {
+        let limits = Limits::default();
+        Self {
+            mesh: None,
+            listen: SocketAddr::from(([127, 0, 0, 1], 50051)),
+            max_displacement_mm: limits.max_displacement_m * 1e3,
+            max_interaction_points: limits.max_interaction_points,
+            max_message_bytes: 1 << 20,
+        }
+    }
+}
+
+impl ServeConfig {
+    pub fn limits(&self) -> Limits {
+        Limits {
+            max_displacement_m: self.max_displacement_mm * 1e-3,
+            max_interaction_points: self.max_interaction_points,
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ServeError {
+    #[error("gRPC transport: {0}")]
+    Transport(#[from] tonic::transport::Error),
+    #[error("server reflection: {0}")]
+    Reflection(#[from] tonic_reflection::server::Error),
+}
+
+/// Serves `engine` on `listener` until `shutdown` completes, then drains in-flight calls.
+pub async fn run(
+    engine: Arc<Engine>,
+    listener: TcpListener,
+    max_message_bytes: usize,
+    shutdown: impl std::future::Future<Output = ()> + Send,
+) -> Result<(), ServeError> {
+    let (health_reporter, health_service) = tonic_health::server::health_reporter();
+    health_reporter
+        .set_serving::<DeformationServer<DeformationService>>()
+        .await;
+    let reflection = tonic_reflection::server::Builder::configure()
+        .register_encoded_file_descriptor_set(FILE_DESCRIPTOR_SET)
+        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+        .build_v1()?;
+    let deformation = DeformationServer::new(DeformationService::new(engine.clone()))
+        .max_decoding_message_size(max_message_bytes);
+    info!(
+        address = ?listener.local_addr().ok(),
+        mesh = %engine.mesh().config.name,
+        nodes = engine.mesh().node_count(),
+        models = ?engine.models().map(|m| m.name.clone()).collect::<Vec<_>>(),
+        "serving"
+    );
+    tonic::transport::Server::builder()
+        .tcp_nodelay(true)
+        .layer(status_codes::layer())
+        .add_service(health_service)
+        .add_service(reflection)
+        .add_service(deformation)
+        .serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown)
+        .await?;
+    info!("stopped");
+    Ok(())
+}
+
+/// Completes on SIGINT or SIGTERM.
+pub async fn shutdown_signal() {
+    let interrupt = tokio::signal::ctrl_c();
+    #[cfg(unix)]
+    {
+        let mut terminate =
+            match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+                Ok(s) => s,
+                Err(e) => {
+                    tracing::warn!(error = %e, "cannot listen for SIGTERM; stop with SIGINT");
+                    let _ = interrupt.await;
+                    return;
+                }
+            };
+        tokio::select! {
+            _ = interrupt => info!("SIGINT: shutting down"),
+            _ = terminate.recv() => info!("SIGTERM: shutting down"),
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = interrupt.await;
+    }
+}

@@ -1,0 +1,120 @@
+//! The `nak.v1.Deformation` service over an [`Engine`].
+
+use std::pin::Pin;
+use std::sync::Arc;
+
+use tokio_stream::{Stream, StreamExt};
+use tonic::{Code, Request, Response, Status, Streaming};
+use tracing::{debug, warn};
+
+use super::convert;
+use super::status_codes::TOO_LARGE;
+use crate::engine::Engine;
+use crate::proto::v1 as pb;
+use crate::proto::v1::deformation_server::Deformation;
+
+pub struct DeformationService {
+    engine: Arc<Engine>,
+}
+
+impl DeformationService {
+    pub fn new(engine: Arc<Engine>) -> Self {
+        Self { engine }
+    }
+
+    fn predict_one(&self, message: &pb::PredictRequest) -> Result<pb::PredictResponse, Status> {
+        let request = convert::request(message)?;
+        let prediction = self.engine.predict(&request).map_err(|e| {
+            let status = convert::status(&e);
+            if status.code() == Code::Internal {
+                warn!(sequence = message.sequence, error = %e, "prediction failed");
+            } else {
+                debug!(sequence = message.sequence, error = %e, "request refused");
+            }
+            status
+        })?;
+        Ok(convert::response(message.sequence, prediction))
+    }
+}
+
+type ResponseStream = Pin<Box<dyn Stream<Item = Result<pb::PredictResponse, Status>> + Send>>;
+
+#[tonic::async_trait]
+impl Deformation for DeformationService {
+    async fn get_mesh(
+        &self,
+        request: Request<pb::GetMeshRequest>,
+    ) -> Result<Response<pb::Mesh>, Status> {
+        let wanted = &request.get_ref().mesh;
+        if !self.engine.serves_mesh(wanted) {
+            return Err(Status::not_found(format!(
+                "mesh {wanted:?} is not served here; this server serves {:?}",
+                self.engine.mesh().config.name
+            )));
+        }
+        Ok(Response::new(convert::mesh(self.engine.mesh())))
+    }
+
+    async fn list_models(
+        &self,
+        _request: Request<pb::ListModelsRequest>,
+    ) -> Result<Response<pb::ListModelsResponse>, Status> {
+        let models = self.engine.models().map(convert::model_info).collect();
+        Ok(Response::new(pb::ListModelsResponse { models }))
+    }
+
+    async fn predict(
+        &self,
+        request: Request<pb::PredictRequest>,
+    ) -> Result<Response<pb::PredictResponse>, Status> {
+        self.predict_one(request.get_ref()).map(Response::new)
+    }
+
+    type PredictStreamStream = ResponseStream;
+
+    async fn predict_stream(
+        &self,
+        request: Request<Streaming<pb::PredictRequest>>,
+    ) -> Result<Response<Self::PredictStreamStream>, Status> {
+        let mut incoming = request.into_inner();
+        let service = DeformationService::new(self.engine.clone());
+        // Requests are answered one at a time as they arrive, so answers keep their order. A refused
+        // request is answered with `error` set; only a broken stream ends the call.
+        let outgoing = async_stream(move |tx| async move {
+            while let Some(next) = incoming.next().await {
+                let answer = match next {
+                    Ok(message) => Ok(service.predict_one(&message).unwrap_or_else(|status| {
+                        pb::PredictResponse {
+                            sequence: message.sequence,
+                            error: Some(pb::StreamError {
+                                code: status.code() as i32,
+                                message: status.message().to_owned(),
+                            }),
+                            ..Default::default()
+                        }
+                    })),
+                    Err(status) if status.message().contains(TOO_LARGE) => {
+                        Err(Status::resource_exhausted(status.message().to_owned()))
+                    }
+                    Err(status) => Err(status),
+                };
+                let stop = answer.is_err();
+                if tx.send(answer).await.is_err() || stop {
+                    break;
+                }
+            }
+        });
+        Ok(Response::new(Box::pin(outgoing)))
+    }
+}
+
+/// A response stream fed by a task: the task ends when the client cancels (the receiver is dropped).
+fn async_stream<F, Fut>(body: F) -> impl Stream<Item = Result<pb::PredictResponse, Status>>
+where
+    F: FnOnce(tokio::sync::mpsc::Sender<Result<pb::PredictResponse, Status>>) -> Fut,
+    Fut: std::future::Future<Output = ()> + Send + 'static,
+{
+    let (tx, rx) = tokio::sync::mpsc::channel(16);
+    tokio::spawn(body(tx));
+    tokio_stream::wrappers::ReceiverStream::new(rx)
+}
