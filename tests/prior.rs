@@ -234,11 +234,8 @@ fn the_interaction_matrix_is_symmetric() {
     let r = [0.013, -0.021, 0.007];
     assert_eq!(prior.response(r), prior.response(r.map(|v| -v)));
     let m = prior.response(r);
-    for i in 0..3 {
-        for j in 0..3 {
-            assert_eq!(m[i][j], m[j][i]);
-        }
-    }
+    let transposed: [[f64; 3]; 3] = std::array::from_fn(|i| std::array::from_fn(|j| m[j][i]));
+    assert_eq!(m, transposed);
 }
 
 #[test]

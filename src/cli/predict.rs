@@ -66,7 +66,7 @@ pub fn run(
 
 /// Writes row-major (n, 3) f32 displacements as a NumPy .npy file.
 pub fn write_npy(path: &Path, displacements: &[f32]) -> anyhow::Result<()> {
-    if displacements.len() % 3 != 0 {
+    if !displacements.len().is_multiple_of(3) {
         bail!("displacements are not (n, 3)");
     }
     let file =

@@ -2,3 +2,4 @@
 #![allow(dead_code)]
 
 pub mod msh_fixture;
+pub mod server;

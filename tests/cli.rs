@@ -1,0 +1,188 @@
+//! The `nak` binary: serve (with graceful shutdown on SIGTERM), predict and mesh info.
+
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+use std::process::{Command, Stdio};
+
+use nak::proto::v1::deformation_client::DeformationClient;
+use nak::proto::v1::{Grasp, PredictRequest, Vec3};
+
+fn nak() -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_nak"));
+    c.env("RUST_BACKTRACE", "0").env("NO_COLOR", "1");
+    c
+}
+
+fn repo(path: &str) -> std::path::PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join(path)
+}
+
+#[test]
+fn serve_answers_on_the_embedded_phantom_and_stops_cleanly_on_sigterm() {
+    let mut child = nak()
+        .args(["serve", "--listen", "127.0.0.1:0", "--log-format", "json"])
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut lines = BufReader::new(child.stderr.take().unwrap()).lines();
+    let address = loop {
+        let line = lines
+            .next()
+            .expect("server exited before listening")
+            .unwrap();
+        let record: serde_json::Value = serde_json::from_str(&line).unwrap();
+        if record["fields"]["message"] == "listening" {
+            break record["fields"]["address"].as_str().unwrap().to_owned();
+        }
+    };
+    let runtime = tokio::runtime::Runtime::new().unwrap();
+    let response = runtime.block_on(async {
+        let mut client = DeformationClient::connect(format!("http://{address}"))
+            .await
+            .unwrap();
+        let mesh = client
+            .get_mesh(nak::proto::v1::GetMeshRequest::default())
+            .await
+            .unwrap()
+            .into_inner();
+        assert_eq!(mesh.name, "phantom-liver");
+        let node = mesh
+            .node_sets
+            .iter()
+            .find(|s| s.name == "grasp_04")
+            .unwrap()
+            .nodes[0];
+        client
+            .predict(PredictRequest {
+                grasps: vec![Grasp {
+                    nodes: vec![node],
+                    displacement: Some(Vec3 {
+                        x: 0.0,
+                        y: 0.02,
+                        z: 0.0,
+                    }),
+                    ..Default::default()
+                }],
+                ..Default::default()
+            })
+            .await
+            .unwrap()
+            .into_inner()
+    });
+    assert!(response.node_count > 9_500);
+    let status = Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let rest: Vec<String> = lines.map(|l| l.unwrap()).collect();
+    let exit = child.wait().unwrap();
+    assert!(exit.success(), "exit {exit:?}; log: {rest:?}");
+    assert!(rest.iter().any(|l| l.contains("SIGTERM")), "{rest:?}");
+    assert!(rest.iter().any(|l| l.contains("\"stopped\"")), "{rest:?}");
+}
+
+#[test]
+fn predict_writes_a_float32_npy_of_every_node() {
+    let dir = tempfile::tempdir().unwrap();
+    let grasps = dir.path().join("grasps.json");
+    std::fs::write(
+        &grasps,
+        r#"{"grasps":[{"point":[-0.06,-0.05,0.04],"radius":0.008,"displacement":[0.01,0.02,0.0]},
+                      {"point":[0.05,-0.01,0.03],"radius":0,"displacement":[0.0,0.03,0.0]}]}"#,
+    )
+    .unwrap();
+    let out = dir.path().join("u.npy");
+    let output = nak()
+        .arg("predict")
+        .arg("--mesh")
+        .arg(repo("models/phantom-liver/liver-coarse.msh"))
+        .args(["--model", "kelvinlet", "--grasps"])
+        .arg(&grasps)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let bytes = std::fs::read(&out).unwrap();
+    let npy = npyz::NpyFile::new(&bytes[..]).unwrap();
+    assert_eq!(npy.shape(), &[2052, 3]);
+    let values: Vec<f32> = npy.into_vec().unwrap();
+    let largest = values
+        .chunks(3)
+        .map(|u| (u[0] * u[0] + u[1] * u[1] + u[2] * u[2]).sqrt())
+        .fold(0.0, f32::max);
+    // The grasped nodes move by their displacements; nothing moves much further.
+    assert!((0.029..0.031).contains(&largest), "{largest}");
+}
+
+#[test]
+fn predict_refuses_bad_grasps_with_the_reason() {
+    let dir = tempfile::tempdir().unwrap();
+    let grasps = dir.path().join("grasps.json");
+    std::fs::write(
+        &grasps,
+        r#"{"grasps":[{"nodes":[99999999],"displacement":[0,0.01,0]}]}"#,
+    )
+    .unwrap();
+    let output = nak()
+        .args(["predict", "--grasps"])
+        .arg(&grasps)
+        .arg("--out")
+        .arg(dir.path().join("u.npy"))
+        .output()
+        .unwrap();
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(stderr.contains("holds node 99999999"), "{stderr}");
+}
+
+#[test]
+fn mesh_info_summarizes_and_refuses_missing_files() {
+    let output = nak()
+        .args(["mesh", "info"])
+        .arg(repo("models/phantom-liver"))
+        .output()
+        .unwrap();
+    assert!(output.status.success());
+    let text = String::from_utf8_lossy(&output.stdout);
+    for expected in [
+        "nodes       9701",
+        "closed and manifold",
+        "liver",
+        "gallbladder",
+        "ducts",
+        "grasp_10",
+        "dihedral",
+    ] {
+        assert!(text.contains(expected), "{expected} missing from:\n{text}");
+    }
+    let output = nak()
+        .args(["mesh", "info", "no/such.msh"])
+        .output()
+        .unwrap();
+    assert!(!output.status.success());
+    assert!(String::from_utf8_lossy(&output.stderr).contains("no/such.msh"));
+}
+
+#[test]
+fn a_serve_config_file_sets_the_listen_address_and_limits() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = dir.path().join("serve.toml");
+    std::fs::write(
+        &config,
+        "listen = \"127.0.0.1:0\"\nmax_displacement_mm = 50.0\nbogus = 1\n",
+    )
+    .unwrap();
+    let output = nak()
+        .args(["serve", "--config"])
+        .arg(&config)
+        .output()
+        .unwrap();
+    assert!(!output.status.success());
+    assert!(String::from_utf8_lossy(&output.stderr).contains("unknown field `bogus`"));
+}
