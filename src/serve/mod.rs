@@ -9,7 +9,6 @@ use std::sync::Arc;
 
 use serde::Deserialize;
 use tokio::net::TcpListener;
-use tokio_stream::wrappers::TcpListenerStream;
 use tracing::info;
 
 pub use convert::f32_bytes;
@@ -87,13 +86,15 @@ pub async fn run(
         models = ?engine.models().map(|m| m.name.clone()).collect::<Vec<_>>(),
         "serving"
     );
+    // Nagle's algorithm would hold back the tail of a response until the client's delayed ACK, 40 ms
+    // on Linux; the builder's own nodelay setting does not reach sockets accepted here.
+    let incoming = tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true));
     tonic::transport::Server::builder()
-        .tcp_nodelay(true)
         .layer(status_codes::layer())
         .add_service(health_service)
         .add_service(reflection)
         .add_service(deformation)
-        .serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown)
+        .serve_with_incoming_shutdown(incoming, shutdown)
         .await?;
     info!("stopped");
     Ok(())

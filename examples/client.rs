@@ -1,0 +1,61 @@
+//! A minimal nak client: fetch the mesh, lift grasp region 4 by 2 cm, print what came back.
+//!
+//! Start a server (`cargo run --release -- serve`), then `cargo run --release --example client`.
+
+use nak::proto::v1::deformation_client::DeformationClient;
+use nak::proto::v1::{GetMeshRequest, Grasp, PredictRequest, Vec3};
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    let target = std::env::args()
+        .nth(1)
+        .unwrap_or_else(|| "http://127.0.0.1:50051".into());
+    let mut client = DeformationClient::connect(target).await?;
+    let mesh = client
+        .get_mesh(GetMeshRequest::default())
+        .await?
+        .into_inner();
+    let grasp_04 = mesh
+        .node_sets
+        .iter()
+        .find(|s| s.name == "grasp_04")
+        .ok_or_else(|| anyhow::anyhow!("the mesh has no grasp_04"))?;
+    let request = PredictRequest {
+        model: "kelvinlet".into(),
+        grasps: vec![Grasp {
+            nodes: grasp_04.nodes.iter().take(10).copied().collect(),
+            displacement: Some(Vec3 {
+                x: 0.0,
+                y: 0.02,
+                z: 0.0,
+            }),
+            ..Default::default()
+        }],
+        ..Default::default()
+    };
+    for _ in 0..5 {
+        let started = std::time::Instant::now();
+        let response = client.predict(request.clone()).await?.into_inner();
+        let round_trip = started.elapsed();
+        // Packed little-endian f32, (node_count, 3).
+        let u: Vec<f32> = response
+            .displacements
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect();
+        let largest = u
+            .chunks(3)
+            .map(|d| (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt())
+            .fold(0.0, f32::max);
+        let t = response.timing.unwrap_or_default();
+        println!(
+            "{} nodes, largest displacement {:.1} mm; server {:.0} µs (prior {:.0} µs), round trip {:.0} µs",
+            response.node_count,
+            largest * 1e3,
+            t.total_us,
+            t.prior_us,
+            round_trip.as_secs_f64() * 1e6
+        );
+    }
+    Ok(())
+}
