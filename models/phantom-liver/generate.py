@@ -79,7 +79,7 @@ def liver_body(occ: type[gmsh.model.occ]) -> int:
     shear = [1.0, 0.0, 0.0, 0.0, VISCERAL_TILT, 1.0, -VISCERAL_SLOPE, VISCERAL_Y0, 0.0, 0.0, 1.0, 0.0]
     occ.affineTransform([(3, cutter)], shear)
     body, _ = occ.cut(fused, [(3, cutter)])
-    return body[0][1]
+    return int(body[0][1])
 
 
 GALLBLADDER_NECK = (-0.030, visceral_y(-0.030, -0.040) - 0.006, -0.040)
@@ -93,7 +93,7 @@ def gallbladder_body(occ: type[gmsh.model.occ]) -> int:
     body = occ.addCone(*fundus, *(neck - fundus), 0.0165, 0.0058)
     n = occ.addSphere(*neck, 0.0062)
     pear, _ = occ.fuse([(3, f)], [(3, body), (3, n)])
-    return pear[0][1]
+    return int(pear[0][1])
 
 
 def duct_bodies(occ: type[gmsh.model.occ]) -> tuple[int, tuple[float, float, float]]:
@@ -146,7 +146,7 @@ def bare_area_centre() -> np.ndarray:
 
 
 def centred_box(occ: type[gmsh.model.occ], centre: np.ndarray, half: float) -> int:
-    return occ.addBox(*(centre - half), 2 * half, 2 * half, 2 * half)
+    return int(occ.addBox(*(centre - half), 2 * half, 2 * half, 2 * half))
 
 
 def boundary_surfaces() -> list[int]:

@@ -15,6 +15,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib.patches import Rectangle  # noqa: E402
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 
 REGION_COLOURS = {"liver": "#a0522d", "gallbladder": "#4f9a4a", "ducts": "#d4b21f", "fascia": "#c8a2c8"}
@@ -71,9 +72,9 @@ def render(msh: Path, png: Path) -> None:
     tris, tri_regions = boundary(tets, regions)
     fixed = node_sets.get("fixed", set())
     grasps = sorted(k for k in node_sets if k.startswith("grasp_"))
-    colours = []
+    colours: list[str | tuple[float, float, float, float]] = []
     for tri, region in zip(tris, tri_regions):
-        colour = REGION_COLOURS.get(region, "#999999")
+        colour: str | tuple[float, float, float, float] = REGION_COLOURS.get(region, "#999999")
         if all(v in fixed for v in tri):
             colour = FIXED_COLOUR
         for i, g in enumerate(grasps):
@@ -104,12 +105,12 @@ def render(msh: Path, png: Path) -> None:
             for i, g in enumerate(grasps):
                 centre = mm[sorted(node_sets[g])].mean(axis=0)
                 ax.text(centre[0], centre[2] + 8, centre[1] - 6, g[-2:], color=GRASP_CMAP(i), fontsize=9)
-    handles = [plt.Rectangle((0, 0), 1, 1, color=c) for c in REGION_COLOURS.values()]
+    handles = [Rectangle((0, 0), 1, 1, color=c) for c in REGION_COLOURS.values()]
     labels = list(REGION_COLOURS)
-    handles.append(plt.Rectangle((0, 0), 1, 1, color=FIXED_COLOUR))
+    handles.append(Rectangle((0, 0), 1, 1, color=FIXED_COLOUR))
     labels.append("fixed")
     for i, g in enumerate(grasps):
-        handles.append(plt.Rectangle((0, 0), 1, 1, color=GRASP_CMAP(i)))
+        handles.append(Rectangle((0, 0), 1, 1, color=GRASP_CMAP(i)))
         labels.append(g)
     fig.legend(handles, labels, loc="lower center", ncol=8, frameon=False)
     fig.suptitle(f"{msh.name}: {len(nodes)} nodes, {len(tets)} tetrahedra, {len(tris)} surface triangles")

@@ -1,0 +1,56 @@
+"""A minimal nak client in Python (grpcio): fetch the mesh, lift grasp region 4 by 2 cm, read the field.
+
+Start a server (cargo run --release -- serve), then: python examples/client.py [127.0.0.1:50051]
+The stubs are generated from proto/ at start-up with grpcio-tools, so nothing generated is committed.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+import tempfile
+from pathlib import Path
+from types import ModuleType
+
+import grpc
+import numpy as np
+from grpc_tools import protoc
+
+PROTO_ROOT = Path(__file__).resolve().parent.parent / "proto"
+
+
+def load_stubs() -> tuple[ModuleType, ModuleType]:
+    """Compile nak/v1/deformation.proto into a temporary package and import it."""
+    out = tempfile.mkdtemp(prefix="nak-stubs-")
+    status = protoc.main(
+        ["protoc", f"-I{PROTO_ROOT}", f"--python_out={out}", f"--grpc_python_out={out}", "nak/v1/deformation.proto"]
+    )
+    if status != 0:
+        raise RuntimeError(f"protoc failed with status {status}")
+    sys.path.insert(0, out)
+    return importlib.import_module("nak.v1.deformation_pb2"), importlib.import_module("nak.v1.deformation_pb2_grpc")
+
+
+def main(target: str = "127.0.0.1:50051") -> np.ndarray:
+    pb, rpc = load_stubs()
+    with grpc.insecure_channel(target) as channel:
+        stub = rpc.DeformationStub(channel)
+        mesh = stub.GetMesh(pb.GetMeshRequest())
+        positions = np.frombuffer(mesh.positions, dtype="<f4").reshape(-1, 3)
+        grasp_04 = next(s for s in mesh.node_sets if s.name == "grasp_04")
+        request = pb.PredictRequest(
+            model="kelvinlet",
+            grasps=[pb.Grasp(nodes=list(grasp_04.nodes)[:10], displacement=pb.Vec3(x=0.0, y=0.02, z=0.0))],
+        )
+        response = stub.Predict(request)
+        u = np.frombuffer(response.displacements, dtype="<f4").reshape(-1, 3)
+        print(
+            f"{len(positions)} nodes; {response.interaction_points} interaction points; "
+            f"largest displacement {1e3 * np.linalg.norm(u, axis=1).max():.1f} mm; "
+            f"server {response.timing.total_us:.0f} µs"
+        )
+        return u
+
+
+if __name__ == "__main__":
+    main(*sys.argv[1:2])

@@ -1,0 +1,50 @@
+"""Shared fixtures: paths in the repository and a running `nak serve`."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "examples"))
+sys.path.insert(0, str(ROOT / "models" / "phantom-liver"))
+
+
+@pytest.fixture(scope="session")
+def nak_binary() -> Path:
+    """The debug binary built by `cargo test` (override with NAK_BIN)."""
+    path = Path(os.environ.get("NAK_BIN", ROOT / "target" / "debug" / "nak"))
+    if not path.exists():
+        pytest.fail(f"{path} not found: run `cargo build` first (scripts/test does)")
+    return path
+
+
+@pytest.fixture()
+def nak_server(nak_binary: Path) -> Iterator[str]:
+    """`nak serve` on the embedded phantom at a free loopback port; yields host:port."""
+    proc = subprocess.Popen(
+        [str(nak_binary), "serve", "--listen", "127.0.0.1:0", "--log-format", "json"],
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert proc.stderr is not None
+    address = None
+    for line in proc.stderr:
+        record = json.loads(line)
+        if record["fields"].get("message") == "listening":
+            address = record["fields"]["address"]
+            break
+    if address is None:
+        proc.kill()
+        pytest.fail("nak serve exited before listening")
+    try:
+        yield address
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
