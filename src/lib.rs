@@ -5,6 +5,7 @@
 
 pub mod engine;
 pub mod mesh;
+pub mod model;
 pub mod prior;
 pub mod proto;
 pub mod serve;

@@ -8,7 +8,7 @@ use std::sync::Arc;
 
 use anyhow::Context;
 use clap::{Parser, Subcommand, ValueEnum};
-use nak::engine::Engine;
+use nak::engine::{DeformationModel, Engine};
 use nak::mesh::{self, MeshSource, TetMesh};
 use nak::serve::{self, ServeConfig};
 use tracing::info;
@@ -68,6 +68,20 @@ struct ServeArgs {
     /// Largest request message, bytes [default: 1048576].
     #[arg(long)]
     max_message_bytes: Option<usize>,
+    #[command(flatten)]
+    models: ModelArgs,
+}
+
+/// Where networks come from.
+#[derive(clap::Args)]
+struct ModelArgs {
+    /// A directory whose subdirectories are models (manifest.toml + model.onnx); repeatable. A --mesh
+    /// directory is always searched.
+    #[arg(long = "models", value_name = "DIR")]
+    dirs: Vec<PathBuf>,
+    /// ONNX Runtime shared library (libonnxruntime.so.1.31.1) [default: $ORT_DYLIB_PATH].
+    #[arg(long, value_name = "PATH")]
+    ort_dylib: Option<PathBuf>,
 }
 
 #[derive(clap::Args)]
@@ -88,6 +102,8 @@ struct PredictArgs {
     /// Write the surface nodes only (Mesh.surface_nodes order) instead of every node.
     #[arg(long)]
     surface_only: bool,
+    #[command(flatten)]
+    models: ModelArgs,
 }
 
 #[derive(Subcommand)]
@@ -117,7 +133,8 @@ fn main() -> anyhow::Result<()> {
 
 fn init_logging(format: LogFormat) {
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+        // ONNX Runtime logs every session option at info; its warnings are what matter.
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,ort=warn"));
     let builder = tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr);
@@ -151,13 +168,29 @@ fn serve_config(args: ServeArgs) -> anyhow::Result<ServeConfig> {
         .max_interaction_points
         .unwrap_or(config.max_interaction_points);
     config.max_message_bytes = args.max_message_bytes.unwrap_or(config.max_message_bytes);
+    config.models.extend(args.models.dirs);
+    config.ort_dylib = args.models.ort_dylib.or(config.ort_dylib);
     Ok(config)
+}
+
+/// The mesh, the Kelvinlet prior and every model found under the configured directories.
+fn build_engine(config: &ServeConfig) -> anyhow::Result<Engine> {
+    let mesh = Arc::new(load_mesh(config.mesh.as_deref())?);
+    let mut engine = Engine::new(mesh.clone(), config.limits());
+    for root in config.model_roots() {
+        let models = nak::model::load_all(&root, &mesh, config.ort_dylib.as_deref())
+            .with_context(|| format!("cannot load the models in {}", root.display()))?;
+        for model in models {
+            info!(model = %model.info().name, from = %root.display(), "model loaded and warmed up");
+            engine.add_model(Arc::new(model));
+        }
+    }
+    Ok(engine)
 }
 
 fn serve(args: ServeArgs) -> anyhow::Result<()> {
     let config = serve_config(args)?;
-    let mesh = Arc::new(load_mesh(config.mesh.as_deref())?);
-    let engine = Arc::new(Engine::new(mesh, config.limits()));
+    let engine = Arc::new(build_engine(&config)?);
     let runtime = tokio::runtime::Runtime::new().context("cannot start the async runtime")?;
     runtime.block_on(async {
         let listener = tokio::net::TcpListener::bind(config.listen)
@@ -177,8 +210,13 @@ fn serve(args: ServeArgs) -> anyhow::Result<()> {
 }
 
 fn predict(args: PredictArgs) -> anyhow::Result<()> {
-    let mesh = Arc::new(load_mesh(args.mesh.as_deref())?);
-    let engine = Engine::new(mesh, Default::default());
+    let config = ServeConfig {
+        mesh: args.mesh,
+        models: args.models.dirs,
+        ort_dylib: args.models.ort_dylib,
+        ..ServeConfig::default()
+    };
+    let engine = build_engine(&config)?;
     let grasps = cli::predict::read_grasps(&args.grasps)?;
     let prediction = cli::predict::run(&engine, &args.model, grasps, args.surface_only)?;
     cli::predict::write_npy(&args.out, &prediction.displacements)?;

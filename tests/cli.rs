@@ -186,3 +186,49 @@ fn a_serve_config_file_sets_the_listen_address_and_limits() {
     assert!(!output.status.success());
     assert!(String::from_utf8_lossy(&output.stderr).contains("unknown field `bogus`"));
 }
+
+#[test]
+fn predict_serves_onnx_models_too() {
+    assert!(
+        std::env::var_os("ORT_DYLIB_PATH").is_some(),
+        "ORT_DYLIB_PATH is not set (scripts/test sets it)"
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let grasps = dir.path().join("grasps.json");
+    std::fs::write(
+        &grasps,
+        r#"{"grasps":[{"point":[0.05,-0.01,0.03],"radius":0,"displacement":[0.0,0.03,0.0]}]}"#,
+    )
+    .unwrap();
+    let mut fields = Vec::new();
+    for model in ["kelvinlet", "pointnet-residual"] {
+        let out = dir.path().join(format!("{model}.npy"));
+        let output = nak()
+            .arg("predict")
+            .arg("--mesh")
+            .arg(repo("models/phantom-liver/liver-coarse.msh"))
+            .arg("--models")
+            .arg(repo("tests/models/phantom-liver-coarse"))
+            .args(["--model", model, "--grasps"])
+            .arg(&grasps)
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .unwrap();
+        assert!(
+            output.status.success(),
+            "{}",
+            String::from_utf8_lossy(&output.stderr)
+        );
+        let bytes = std::fs::read(&out).unwrap();
+        let values: Vec<f32> = npyz::NpyFile::new(&bytes[..]).unwrap().into_vec().unwrap();
+        fields.push(values);
+    }
+    // The residual network moves the field away from the prior, by millimetres.
+    let diff = fields[0]
+        .iter()
+        .zip(&fields[1])
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max);
+    assert!(diff > 1e-5 && diff < 0.02, "{diff}");
+}

@@ -9,7 +9,9 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 pub use grasp::Grasp;
-pub use model::{DeformationModel, KelvinletModel, ModelError, ModelInfo, ModelKind, StageTiming};
+pub use model::{
+    DeformationModel, KelvinletModel, ModelError, ModelInfo, ModelKind, StageTiming, Target,
+};
 
 use crate::mesh::TetMesh;
 use crate::prior::{InteractionPoints, NodeCloud, Workspace};
@@ -129,6 +131,11 @@ impl Engine {
         }
     }
 
+    /// Serves `model` beside the others; a model of the same name is replaced.
+    pub fn add_model(&mut self, model: Arc<dyn DeformationModel>) {
+        self.models.insert(model.info().name.clone(), model);
+    }
+
     pub fn mesh(&self) -> &Arc<TetMesh> {
         &self.mesh
     }
@@ -184,11 +191,18 @@ impl Engine {
             &request.grasps,
             &mut scratch.points,
         )?;
-        let (cloud, node_ids) = match &request.selection {
-            Selection::All => (None, None),
-            Selection::Surface => (None, Some(self.mesh.surface_nodes.clone())),
+        let n = self.mesh.node_count();
+        let listed;
+        let target = match &request.selection {
+            Selection::All => Target {
+                cloud: &self.all_nodes,
+                nodes: None,
+            },
+            Selection::Surface => Target {
+                cloud: &self.surface_nodes,
+                nodes: Some(&self.mesh.surface_nodes),
+            },
             Selection::List(nodes) => {
-                let n = self.mesh.node_count();
                 if nodes.is_empty() {
                     return Err(EngineError::invalid("the node selection is an empty list"));
                 }
@@ -197,22 +211,20 @@ impl Engine {
                         "selected node {bad} does not exist: the mesh has {n} nodes"
                     )));
                 }
-                let cloud = NodeCloud::new(nodes.iter().map(|&v| self.mesh.positions[v as usize]));
-                (Some(cloud), Some(nodes.clone()))
+                listed = NodeCloud::new(nodes.iter().map(|&v| self.mesh.positions[v as usize]));
+                Target {
+                    cloud: &listed,
+                    nodes: Some(nodes),
+                }
             }
         };
-        let cloud = match (&cloud, &request.selection) {
-            (Some(c), _) => c,
-            (None, Selection::Surface) => &self.surface_nodes,
-            (None, _) => &self.all_nodes,
-        };
         let resolved = Instant::now();
-        let mut displacements = vec![0.0f32; 3 * cloud.len()];
+        let mut displacements = vec![0.0f32; 3 * target.cloud.len()];
         let mut stages = StageTiming::default();
         model
             .predict(
                 &scratch.points,
-                cloud,
+                target,
                 &mut scratch.workspace,
                 &mut displacements,
                 &mut stages,
@@ -230,7 +242,7 @@ impl Engine {
         Ok(Prediction {
             model: model.info().name.clone(),
             displacements,
-            node_ids,
+            node_ids: target.nodes.map(<[u32]>::to_vec),
             interaction_points: scratch.points.len(),
             timing,
         })

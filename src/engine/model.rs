@@ -36,17 +36,27 @@ pub struct StageTiming {
 pub enum ModelError {
     #[error(transparent)]
     Solve(#[from] SolveError),
+    #[error("{0}")]
+    Runtime(String),
+}
+
+/// The nodes a prediction answers for: their positions, and their ids unless they are every node in
+/// order.
+#[derive(Clone, Copy)]
+pub struct Target<'a> {
+    pub cloud: &'a NodeCloud,
+    pub nodes: Option<&'a [u32]>,
 }
 
 /// A deformation model over one mesh.
 pub trait DeformationModel: Send + Sync {
     fn info(&self) -> &ModelInfo;
 
-    /// Writes the displacement at every node of `cloud` (row-major (N, 3)) into `out`.
+    /// Writes the displacement at every node of `target` (row-major (n, 3)) into `out`.
     fn predict(
         &self,
         points: &InteractionPoints,
-        cloud: &NodeCloud,
+        target: Target<'_>,
         workspace: &mut Workspace,
         out: &mut [f32],
         timing: &mut StageTiming,
@@ -95,14 +105,15 @@ impl DeformationModel for KelvinletModel {
     fn predict(
         &self,
         points: &InteractionPoints,
-        cloud: &NodeCloud,
+        target: Target<'_>,
         workspace: &mut Workspace,
         out: &mut [f32],
         timing: &mut StageTiming,
     ) -> Result<(), ModelError> {
         let start = std::time::Instant::now();
         self.prior.solve(points, workspace)?;
-        self.prior.evaluate(&workspace.coefficients, cloud, out);
+        self.prior
+            .evaluate(&workspace.coefficients, target.cloud, out);
         timing.prior_us = start.elapsed().as_secs_f32() * 1e6;
         Ok(())
     }

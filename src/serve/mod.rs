@@ -5,6 +5,7 @@ mod service;
 mod status_codes;
 
 use std::net::SocketAddr;
+use std::path::PathBuf;
 use std::sync::Arc;
 
 use serde::Deserialize;
@@ -23,7 +24,12 @@ use crate::proto::v1::deformation_server::DeformationServer;
 #[serde(default, deny_unknown_fields)]
 pub struct ServeConfig {
     /// `--mesh`: a model directory or an .msh file; absent: the embedded phantom liver.
-    pub mesh: Option<std::path::PathBuf>,
+    pub mesh: Option<PathBuf>,
+    /// Directories whose subdirectories hold models (`manifest.toml` + `model.onnx`); a `--mesh`
+    /// directory is searched too.
+    pub models: Vec<PathBuf>,
+    /// ONNX Runtime shared library; absent: `ORT_DYLIB_PATH`.
+    pub ort_dylib: Option<PathBuf>,
     pub listen: SocketAddr,
     /// Largest grasp displacement accepted, in millimetres.
     pub max_displacement_mm: f64,
@@ -37,6 +43,8 @@ impl Default for ServeConfig {
         let limits = Limits::default();
         Self {
             mesh: None,
+            models: Vec::new(),
+            ort_dylib: None,
             listen: SocketAddr::from(([127, 0, 0, 1], 50051)),
             max_displacement_mm: limits.max_displacement_m * 1e3,
             max_interaction_points: limits.max_interaction_points,
@@ -46,6 +54,13 @@ impl Default for ServeConfig {
 }
 
 impl ServeConfig {
+    /// Where models are looked for: a `--mesh` directory (its models are for its default mesh), then
+    /// every `--models` directory.
+    pub fn model_roots(&self) -> Vec<PathBuf> {
+        let mesh_dir = self.mesh.iter().filter(|p| p.is_dir()).cloned();
+        mesh_dir.chain(self.models.iter().cloned()).collect()
+    }
+
     pub fn limits(&self) -> Limits {
         Limits {
             max_displacement_m: self.max_displacement_mm * 1e-3,

@@ -23,7 +23,12 @@ impl TestServer {
         let path =
             Path::new(env!("CARGO_MANIFEST_DIR")).join("models/phantom-liver/liver-coarse.msh");
         let mesh = Arc::new(mesh::load(&MeshSource::File(path)).expect("coarse phantom"));
-        let engine = Arc::new(Engine::new(mesh, limits));
+        Self::with_engine(Engine::new(mesh, limits), max_message_bytes).await
+    }
+
+    /// Serves a prepared engine (with extra models, say).
+    pub async fn with_engine(engine: Engine, max_message_bytes: usize) -> Self {
+        let engine = Arc::new(engine);
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
             .await
             .expect("bind");

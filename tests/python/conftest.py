@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -25,11 +26,11 @@ def nak_binary() -> Path:
     return path
 
 
-@pytest.fixture()
-def nak_server(nak_binary: Path) -> Iterator[str]:
-    """`nak serve` on the embedded phantom at a free loopback port; yields host:port."""
+@contextmanager
+def start_server(nak_binary: Path, extra_args: list[str]) -> Iterator[str]:
+    """`nak serve` at a free loopback port with `extra_args`; yields host:port, stops it with SIGTERM."""
     proc = subprocess.Popen(
-        [str(nak_binary), "serve", "--listen", "127.0.0.1:0", "--log-format", "json"],
+        [str(nak_binary), "serve", "--listen", "127.0.0.1:0", "--log-format", "json", *extra_args],
         stderr=subprocess.PIPE,
         text=True,
     )
@@ -48,3 +49,10 @@ def nak_server(nak_binary: Path) -> Iterator[str]:
     finally:
         proc.terminate()
         proc.wait(timeout=10)
+
+
+@pytest.fixture()
+def nak_server(nak_binary: Path) -> Iterator[str]:
+    """`nak serve` on the embedded phantom."""
+    with start_server(nak_binary, []) as address:
+        yield address

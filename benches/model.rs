@@ -1,0 +1,65 @@
+//! Per-stage latency of the ONNX test models on the paper-scale phantom (9,701 nodes), one grasper of
+//! ten nodes: the whole prediction in criterion, and the mean prior / network split from the engine's
+//! own stage timing. Needs ORT_DYLIB_PATH (scripts/onnxruntime-path).
+
+use std::path::Path;
+use std::sync::Arc;
+
+use criterion::{Criterion, criterion_group, criterion_main};
+use nak::engine::{DeformationModel, Engine, Grasp, Limits, Request};
+use nak::mesh::{self, MeshSource};
+
+const MODELS: [&str; 5] = [
+    "kelvinlet",
+    "mlp-residual",
+    "mlp-direct-prior",
+    "pointnet-residual",
+    "pointnet-direct",
+];
+
+fn models(c: &mut Criterion) {
+    let mesh = Arc::new(mesh::load(&MeshSource::Embedded).expect("embedded phantom"));
+    let mut engine = Engine::new(mesh.clone(), Limits::default());
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/models/phantom-liver");
+    for model in
+        nak::model::load_all(&dir, &mesh, None).expect("test models (is ORT_DYLIB_PATH set?)")
+    {
+        engine.add_model(Arc::new(model) as Arc<dyn DeformationModel>);
+    }
+    let request = |model: &str| Request {
+        model: model.into(),
+        grasps: vec![Grasp {
+            nodes: mesh.node_sets["grasp_04"]
+                .iter()
+                .take(10)
+                .copied()
+                .collect(),
+            displacement: [0.0, 0.02, 0.0],
+            ..Default::default()
+        }],
+        ..Default::default()
+    };
+    let mut group = c.benchmark_group("model");
+    for name in MODELS {
+        let r = request(name);
+        group.bench_function(name, |b| b.iter(|| engine.predict(&r).expect("prediction")));
+    }
+    group.finish();
+    // Where the time goes, as the server reports it per request.
+    println!("\nmean stage times over 200 requests (µs): model, prior, network, total");
+    for name in MODELS {
+        let r = request(name);
+        let mut sums = [0.0f64; 3];
+        for _ in 0..200 {
+            let t = engine.predict(&r).expect("prediction").timing;
+            sums[0] += t.prior_us as f64;
+            sums[1] += t.network_us as f64;
+            sums[2] += t.total_us as f64;
+        }
+        let [prior, network, total] = sums.map(|s| s / 200.0);
+        println!("{name:<18} {prior:>8.0} {network:>8.0} {total:>8.0}");
+    }
+}
+
+criterion_group!(benches, models);
+criterion_main!(benches);

@@ -1,0 +1,144 @@
+//! `manifest.toml`: what a model directory says about its network (DESIGN.md §7).
+
+use std::collections::BTreeMap;
+
+use serde::Deserialize;
+
+use super::ModelLoadError;
+use crate::mesh::{PriorParams, TetMesh};
+
+/// How the served field is made from the network's output.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Mode {
+    /// prior + output (paper Method 1).
+    Residual,
+    /// output alone (base networks and Kelvinlet-regularized networks, paper Method 2).
+    Direct,
+}
+
+/// Input channel groups, in the order they appear in `features`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Channel {
+    Position,
+    Displacement,
+    Active,
+    Prior,
+}
+
+impl Channel {
+    pub fn width(self) -> usize {
+        match self {
+            Channel::Active => 1,
+            _ => 3,
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Manifest {
+    pub model: ModelSection,
+    pub mesh: MeshSection,
+    pub prior: PriorParams,
+    /// Measured on the test split (DCM per subset, …), reported by ListModels.
+    #[serde(default)]
+    pub metrics: BTreeMap<String, toml::Value>,
+    #[serde(default)]
+    pub provenance: BTreeMap<String, toml::Value>,
+}
+
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ModelSection {
+    pub name: String,
+    pub mode: Mode,
+    pub regime: String,
+    pub inputs: Vec<Channel>,
+    #[serde(default)]
+    pub description: String,
+}
+
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MeshSection {
+    pub name: String,
+    pub content_hash: String,
+    pub node_count: usize,
+}
+
+/// The paper's feature vector f = [x; u_s; a]: every model reads these first.
+const REQUIRED: [Channel; 3] = [Channel::Position, Channel::Displacement, Channel::Active];
+
+impl Manifest {
+    pub fn parse(text: &str, origin: &str) -> Result<Self, ModelLoadError> {
+        let manifest: Manifest =
+            toml::from_str(text).map_err(|e| ModelLoadError::new(origin, e.to_string()))?;
+        let inputs = &manifest.model.inputs;
+        let prior_only_last = matches!(&inputs[..], [a, b, c] | [a, b, c, Channel::Prior] if [*a, *b, *c] == REQUIRED);
+        if !prior_only_last {
+            return Err(ModelLoadError::new(
+                origin,
+                format!(
+                    "model.inputs = {inputs:?}: the contract is [\"position\", \"displacement\", \"active\"], \
+                     optionally followed by \"prior\""
+                ),
+            ));
+        }
+        if !matches!(manifest.model.regime.as_str(), "linear" | "nonlinear") {
+            return Err(ModelLoadError::new(
+                origin,
+                format!(
+                    "model.regime = {:?}: expected \"linear\" or \"nonlinear\"",
+                    manifest.model.regime
+                ),
+            ));
+        }
+        Ok(manifest)
+    }
+
+    /// Channels per node in `features`.
+    pub fn channels(&self) -> usize {
+        self.model.inputs.iter().map(|c| c.width()).sum()
+    }
+
+    pub fn reads_prior(&self) -> bool {
+        self.model.inputs.contains(&Channel::Prior)
+    }
+
+    /// Refuses a model made for another mesh or another prior.
+    pub fn check_against(&self, mesh: &TetMesh, origin: &str) -> Result<(), ModelLoadError> {
+        if self.mesh.node_count != mesh.node_count() {
+            return Err(ModelLoadError::new(
+                origin,
+                format!(
+                    "made for a mesh of {} nodes; the served mesh {:?} has {}",
+                    self.mesh.node_count,
+                    mesh.config.name,
+                    mesh.node_count()
+                ),
+            ));
+        }
+        if self.mesh.content_hash != mesh.content_hash {
+            return Err(ModelLoadError::new(
+                origin,
+                format!(
+                    "made for mesh {} ({}); the served mesh {:?} is {}",
+                    self.mesh.name, self.mesh.content_hash, mesh.config.name, mesh.content_hash
+                ),
+            ));
+        }
+        if self.prior != mesh.config.prior {
+            return Err(ModelLoadError::new(
+                origin,
+                format!(
+                    "trained with the prior {:?}; the mesh's prior is {:?}: a network must be served with \
+                     the prior it was trained with",
+                    self.prior, mesh.config.prior
+                ),
+            ));
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,58 @@
+//! ONNX-exported networks under the model contract (DESIGN.md §7): manifests, discovery and serving.
+
+pub mod manifest;
+pub mod onnx;
+pub mod runtime;
+
+use std::path::{Path, PathBuf};
+
+pub use manifest::{Channel, Manifest, Mode};
+pub use onnx::OnnxModel;
+
+use crate::mesh::TetMesh;
+
+/// Why a model (or ONNX Runtime) could not be loaded; the message names the file and the problem.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{origin}: {message}")]
+pub struct ModelLoadError {
+    pub origin: String,
+    pub message: String,
+}
+
+impl ModelLoadError {
+    pub fn new(origin: &str, message: impl Into<String>) -> Self {
+        Self {
+            origin: origin.to_owned(),
+            message: message.into(),
+        }
+    }
+
+    fn runtime(message: impl Into<String>) -> Self {
+        Self::new("onnxruntime", message)
+    }
+}
+
+/// Model directories under `root`: every subdirectory holding a `manifest.toml`, sorted by name.
+pub fn model_dirs(root: &Path) -> Result<Vec<PathBuf>, ModelLoadError> {
+    let entries = std::fs::read_dir(root)
+        .map_err(|e| ModelLoadError::new(&root.display().to_string(), e.to_string()))?;
+    let mut dirs: Vec<PathBuf> = entries
+        .filter_map(Result::ok)
+        .map(|e| e.path())
+        .filter(|p| p.join("manifest.toml").is_file())
+        .collect();
+    dirs.sort();
+    Ok(dirs)
+}
+
+/// Loads every model under `root` for `mesh`; the first refusal stops the load with its reason.
+pub fn load_all(
+    root: &Path,
+    mesh: &TetMesh,
+    ort_dylib: Option<&Path>,
+) -> Result<Vec<OnnxModel>, ModelLoadError> {
+    model_dirs(root)?
+        .iter()
+        .map(|dir| OnnxModel::load(dir, mesh, ort_dylib))
+        .collect()
+}

@@ -1,0 +1,342 @@
+//! ONNX models under the model contract: loading, refusals, composition with the prior, failures.
+//!
+//! Needs ONNX Runtime: ORT_DYLIB_PATH must name libonnxruntime.so.1.31.1 (scripts/test sets it).
+
+mod common;
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use common::server::TestServer;
+use nak::engine::{Engine, Grasp, Limits, Request, Selection};
+use nak::mesh::{self, MeshSource, TetMesh};
+use nak::model::{self, OnnxModel};
+use nak::proto::v1 as pb;
+use tonic::Code;
+
+fn coarse() -> Arc<TetMesh> {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/phantom-liver/liver-coarse.msh");
+    Arc::new(mesh::load(&MeshSource::File(path)).unwrap())
+}
+
+fn test_models() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/models")
+}
+
+fn ort() -> Option<&'static Path> {
+    assert!(
+        std::env::var_os("ORT_DYLIB_PATH").is_some(),
+        "ORT_DYLIB_PATH is not set: run scripts/test, or export ORT_DYLIB_PATH=$(scripts/onnxruntime-path)"
+    );
+    None
+}
+
+fn engine_with_models(mesh: Arc<TetMesh>) -> Engine {
+    let mut engine = Engine::new(mesh.clone(), Limits::default());
+    for m in model::load_all(&test_models().join("phantom-liver-coarse"), &mesh, ort()).unwrap() {
+        engine.add_model(Arc::new(m));
+    }
+    engine
+}
+
+fn two_graspers(mesh: &TetMesh) -> Vec<Grasp> {
+    let grasp = |set: &str, u: [f64; 3]| Grasp {
+        nodes: mesh.node_sets[set].iter().take(10).copied().collect(),
+        displacement: u,
+        ..Default::default()
+    };
+    vec![
+        grasp("grasp_03", [0.01, 0.03, -0.01]),
+        grasp("grasp_08", [-0.02, 0.02, 0.015]),
+    ]
+}
+
+fn predict(engine: &Engine, model: &str, selection: Selection) -> Vec<f32> {
+    let request = Request {
+        model: model.into(),
+        grasps: two_graspers(engine.mesh()),
+        selection,
+        ..Default::default()
+    };
+    engine.predict(&request).unwrap().displacements
+}
+
+/// A copy of a test model in a fresh directory, to break one thing in it.
+fn copy_model(name: &str) -> (tempfile::TempDir, PathBuf) {
+    let root = tempfile::tempdir().unwrap();
+    let dir = root.path().join(name);
+    std::fs::create_dir(&dir).unwrap();
+    for file in ["manifest.toml", "model.onnx"] {
+        std::fs::copy(
+            test_models()
+                .join("phantom-liver-coarse")
+                .join(name)
+                .join(file),
+            dir.join(file),
+        )
+        .unwrap();
+    }
+    (root, dir)
+}
+
+fn load_error(dir: &Path) -> String {
+    match OnnxModel::load(dir, &coarse(), ort()) {
+        Ok(_) => panic!("{} was accepted", dir.display()),
+        Err(e) => e.to_string(),
+    }
+}
+
+#[test]
+fn every_test_model_loads_and_is_listed_with_its_manifest() {
+    let engine = engine_with_models(coarse());
+    let names: Vec<String> = engine.models().map(|m| m.name.clone()).collect();
+    assert_eq!(
+        names,
+        [
+            "kelvinlet",
+            "mlp-direct-prior",
+            "mlp-residual",
+            "pointnet-direct",
+            "pointnet-residual"
+        ]
+    );
+    let mlp = engine.models().find(|m| m.name == "mlp-residual").unwrap();
+    assert_eq!(mlp.regime, "linear");
+    assert_eq!(mlp.metadata["mode"], "residual");
+    assert_eq!(
+        mlp.metadata["provenance.made_by"],
+        "tests/models/make_models.py"
+    );
+}
+
+#[test]
+fn residual_models_serve_prior_plus_network_and_direct_models_do_not() {
+    let engine = engine_with_models(coarse());
+    let prior = predict(&engine, "kelvinlet", Selection::All);
+    let residual = predict(&engine, "pointnet-residual", Selection::All);
+    let direct = predict(&engine, "pointnet-direct", Selection::All);
+    // The residual networks add millimetres to a prior of centimetres.
+    let diff: f32 = residual
+        .iter()
+        .zip(&prior)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f32::max);
+    assert!(diff > 1e-5 && diff < 0.02, "{diff}");
+    let largest = direct.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+    assert!(
+        largest < 0.02,
+        "direct output should be the network's small field, got {largest}"
+    );
+}
+
+#[test]
+fn selections_are_rows_of_the_full_field_for_networks_too() {
+    let engine = engine_with_models(coarse());
+    for model in ["mlp-residual", "mlp-direct-prior", "pointnet-direct"] {
+        let full = predict(&engine, model, Selection::All);
+        let nodes = vec![3u32, 2000, 17, 3];
+        let rows = predict(&engine, model, Selection::List(nodes.clone()));
+        for (i, &n) in nodes.iter().enumerate() {
+            for k in 0..3 {
+                let (a, b) = (rows[3 * i + k], full[3 * n as usize + k]);
+                assert!(
+                    (a - b).abs() <= 1e-6 * b.abs().max(1e-3),
+                    "{model} node {n}: {a} vs {b}"
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn requests_do_not_leak_into_each_other_through_pooled_buffers() {
+    let engine = engine_with_models(coarse());
+    let first = predict(&engine, "pointnet-direct", Selection::All);
+    // A request grasping elsewhere, then the first again: the pooled feature buffer must be clean.
+    let other = Request {
+        model: "pointnet-direct".into(),
+        grasps: vec![Grasp {
+            nodes: engine.mesh().node_sets["grasp_10"].clone(),
+            displacement: [0.0, 0.05, 0.0],
+            ..Default::default()
+        }],
+        ..Default::default()
+    };
+    engine.predict(&other).unwrap();
+    assert_eq!(predict(&engine, "pointnet-direct", Selection::All), first);
+}
+
+#[test]
+fn refuses_a_missing_or_corrupt_model_file() {
+    let (_root, dir) = copy_model("mlp-residual");
+    std::fs::remove_file(dir.join("model.onnx")).unwrap();
+    let err = load_error(&dir);
+    assert!(
+        err.contains("model.onnx") && err.contains("No such file"),
+        "{err}"
+    );
+
+    let (_root, dir) = copy_model("mlp-residual");
+    let bytes = std::fs::read(dir.join("model.onnx")).unwrap();
+    std::fs::write(dir.join("model.onnx"), &bytes[..bytes.len() / 2]).unwrap();
+    let err = load_error(&dir);
+    assert!(
+        err.contains("model.onnx: ONNX Runtime cannot load it"),
+        "{err}"
+    );
+}
+
+#[test]
+fn refuses_wrong_input_or_output_names_and_shapes() {
+    let faulty = test_models().join("faulty");
+    let err = load_error(&faulty.join("wrong-input-name/wrong-input-name"));
+    assert!(
+        err.contains("the input is named \"x\"; the model contract names it \"features\""),
+        "{err}"
+    );
+    let err = load_error(&faulty.join("wrong-output-shape/wrong-output-shape"));
+    assert!(
+        err.contains("output \"displacement\"") && err.contains("[-1, -1, 4]"),
+        "{err}"
+    );
+    // The manifest says the model reads the prior, the graph takes 7 channels.
+    let (_root, dir) = copy_model("mlp-residual");
+    let manifest = std::fs::read_to_string(dir.join("manifest.toml")).unwrap();
+    std::fs::write(
+        dir.join("manifest.toml"),
+        manifest.replace(r#""active"]"#, r#""active", "prior"]"#),
+    )
+    .unwrap();
+    let err = load_error(&dir);
+    assert!(
+        err.contains("input \"features\"") && err.contains("10]"),
+        "{err}"
+    );
+}
+
+#[test]
+fn refuses_a_model_for_another_mesh_or_prior() {
+    let (_root, dir) = copy_model("mlp-residual");
+    let manifest = std::fs::read_to_string(dir.join("manifest.toml")).unwrap();
+    let n = coarse().node_count();
+    std::fs::write(
+        dir.join("manifest.toml"),
+        manifest.replace(&format!("node_count = {n}"), "node_count = 9701"),
+    )
+    .unwrap();
+    let err = load_error(&dir);
+    assert!(err.contains("made for a mesh of 9701 nodes"), "{err}");
+
+    let hash = coarse().content_hash.clone();
+    std::fs::write(
+        dir.join("manifest.toml"),
+        manifest.replace(&hash, &"0".repeat(64)),
+    )
+    .unwrap();
+    let err = load_error(&dir);
+    assert!(err.contains("made for mesh phantom-liver (0000"), "{err}");
+
+    let err = load_error(&test_models().join("faulty/wrong-prior/wrong-prior"));
+    assert!(
+        err.contains("must be served with the prior it was trained with"),
+        "{err}"
+    );
+
+    std::fs::write(
+        dir.join("manifest.toml"),
+        manifest.replace("mode = \"residual\"", "mode = \"both\""),
+    )
+    .unwrap();
+    let err = load_error(&dir);
+    assert!(
+        err.contains("manifest.toml") && err.contains("unknown variant `both`"),
+        "{err}"
+    );
+}
+
+#[tokio::test]
+async fn a_model_failing_at_run_time_answers_internal_and_the_server_goes_on() {
+    let mesh = coarse();
+    let mut engine = Engine::new(mesh.clone(), Limits::default());
+    let faulty = test_models().join("faulty/fails-at-run-time");
+    for m in model::load_all(&faulty, &mesh, ort()).unwrap() {
+        engine.add_model(Arc::new(m));
+    }
+    let server = TestServer::with_engine(engine, 1 << 20).await;
+    let mut client = server.client().await;
+    let grasps: Vec<pb::Grasp> = two_graspers(&mesh)
+        .into_iter()
+        .map(|g| pb::Grasp {
+            nodes: g.nodes,
+            displacement: Some(pb::Vec3 {
+                x: g.displacement[0] as f32,
+                y: g.displacement[1] as f32,
+                z: g.displacement[2] as f32,
+            }),
+            ..Default::default()
+        })
+        .collect();
+    let request = |model: &str| pb::PredictRequest {
+        model: model.into(),
+        grasps: grasps.clone(),
+        ..Default::default()
+    };
+    let status = client
+        .predict(request("fails-at-run-time"))
+        .await
+        .unwrap_err();
+    assert_eq!(status.code(), Code::Internal);
+    assert!(
+        status.message().contains("fails-at-run-time failed")
+            && status.message().contains("Gather"),
+        "{status:?}"
+    );
+    assert!(client.predict(request("kelvinlet")).await.is_ok());
+    // The failed model itself is still there for the next request (and fails the same way).
+    assert_eq!(
+        client
+            .predict(request("fails-at-run-time"))
+            .await
+            .unwrap_err()
+            .code(),
+        Code::Internal
+    );
+    server.stop().await;
+}
+
+#[tokio::test]
+async fn timing_reports_prior_network_and_total() {
+    let server = TestServer::with_engine(engine_with_models(coarse()), 1 << 20).await;
+    let mut client = server.client().await;
+    let mesh = server.engine.mesh().clone();
+    let nodes: Vec<u32> = mesh.node_sets["grasp_04"]
+        .iter()
+        .take(10)
+        .copied()
+        .collect();
+    let response = client
+        .predict(pb::PredictRequest {
+            model: "mlp-residual".into(),
+            grasps: vec![pb::Grasp {
+                nodes,
+                displacement: Some(pb::Vec3 {
+                    x: 0.0,
+                    y: 0.02,
+                    z: 0.0,
+                }),
+                ..Default::default()
+            }],
+            ..Default::default()
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    let t = response.timing.unwrap();
+    assert!(t.prior_us > 0.0 && t.network_us > 0.0, "{t:?}");
+    assert!(
+        t.total_us >= t.network_us && t.total_us >= t.prior_us,
+        "{t:?}"
+    );
+    assert_eq!(response.model, "mlp-residual");
+    server.stop().await;
+}

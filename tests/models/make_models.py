@@ -1,0 +1,268 @@
+"""Write the small ONNX test models (fixed, seeded weights) that exercise nak's model contract.
+
+DESIGN.md §7: input `features` f32 [B, N, C] with channels position (3), prescribed displacement (3),
+active flag (1) and, if the manifest lists it, the prior (3); output `displacement` f32 [B, N, 3];
+normalization inside the graph. The weights are random, not trained: these models test the serving
+machinery, not accuracy.
+
+For each mesh given (default: the phantom at paper scale and the coarse phantom) this writes
+tests/models/<mesh>/<model>/{model.onnx, manifest.toml} for:
+
+* mlp-residual       per-node MLP (7 → 64 → 64 → 3), residual on the Kelvinlet prior
+* mlp-direct-prior   per-node MLP that also reads the prior channels (10 inputs), direct
+* pointnet-residual  PointNet-style (per-node MLP, global max-pool, per-node head), residual
+* pointnet-direct    the same, direct
+
+and, for the coarse mesh only, tests/models/faulty/<case>/ models that must be refused or fail.
+Run from the repository root after `cargo build`: python tests/models/make_models.py
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import onnx
+from onnx import TensorProto, helper, numpy_helper
+
+ROOT = Path(__file__).resolve().parents[2]
+HERE = Path(__file__).resolve().parent
+OPSET = 17
+WIDTH = 64
+BASE_CHANNELS = ["position", "displacement", "active"]
+PRIOR_CHANNEL = "prior"
+
+# Per-channel normalization baked into the graph: (value - shift) / scale.
+SHIFT = {"position": [0.0, 0.0, 0.0], "displacement": [0.0] * 3, "active": [0.0], "prior": [0.0] * 3}
+SCALE = {"position": [0.1] * 3, "displacement": [0.05] * 3, "active": [1.0], "prior": [0.05] * 3}
+# Residuals of a few millimetres: the last layer is scaled so outputs are mm-sized.
+OUTPUT_SCALE = 0.004
+
+
+@dataclass(frozen=True)
+class Mesh:
+    directory: str
+    path: Path
+    name: str
+    content_hash: str
+    node_count: int
+
+
+def describe_mesh(directory: str, path: Path, nak: Path) -> Mesh:
+    """Name, hash and node count as nak computes them (`nak mesh info`)."""
+    out = subprocess.run([str(nak), "mesh", "info", str(path)], check=True, capture_output=True, text=True).stdout
+    fields = {parts[0]: parts[1] for parts in (line.split() for line in out.splitlines()) if len(parts) >= 2}
+    return Mesh(directory, path, fields["name"], fields["hash"], int(fields["nodes"]))
+
+
+class GraphBuilder:
+    """Accumulates nodes and initializers with unique names."""
+
+    def __init__(self, seed: int) -> None:
+        self.rng = np.random.default_rng(seed)
+        self.nodes: list[onnx.NodeProto] = []
+        self.initializers: list[onnx.TensorProto] = []
+        self.count = 0
+
+    def name(self, stem: str) -> str:
+        self.count += 1
+        return f"{stem}_{self.count}"
+
+    def constant(self, value: np.ndarray, stem: str = "const") -> str:
+        name = self.name(stem)
+        self.initializers.append(numpy_helper.from_array(value, name))
+        return name
+
+    def op(self, op_type: str, inputs: list[str], stem: str | None = None, **attrs: Any) -> str:
+        out = self.name(stem or op_type.lower())
+        self.nodes.append(helper.make_node(op_type, inputs, [out], **attrs))
+        return out
+
+    def linear(self, x: str, fan_in: int, fan_out: int, scale: float = 1.0) -> str:
+        limit = np.sqrt(6.0 / (fan_in + fan_out))
+        w = (self.rng.uniform(-limit, limit, (fan_in, fan_out)) * scale).astype(np.float32)
+        b = (self.rng.uniform(-0.1, 0.1, fan_out) * scale).astype(np.float32)
+        return self.op("Add", [self.op("MatMul", [x, self.constant(w, "weight")]), self.constant(b, "bias")])
+
+    def normalized(self, channels: list[str]) -> str:
+        shift = np.array(sum((SHIFT[c] for c in channels), []), dtype=np.float32)
+        scale = np.array(sum((SCALE[c] for c in channels), []), dtype=np.float32)
+        return self.op("Div", [self.op("Sub", ["features", self.constant(shift)]), self.constant(scale)])
+
+
+def mlp(g: GraphBuilder, channels: list[str], outputs: int = 3) -> str:
+    c = len(feature_columns(channels))
+    h = g.op("Relu", [g.linear(g.normalized(channels), c, WIDTH)])
+    h = g.op("Relu", [g.linear(h, WIDTH, WIDTH)])
+    return g.linear(h, WIDTH, outputs, scale=OUTPUT_SCALE)
+
+
+def pointnet(g: GraphBuilder, channels: list[str]) -> str:
+    c = len(feature_columns(channels))
+    h = g.op("Relu", [g.linear(g.normalized(channels), c, WIDTH)])
+    h = g.op("Relu", [g.linear(h, WIDTH, WIDTH)])
+    pooled = g.op("ReduceMax", [h], axes=[1], keepdims=1)  # [B, 1, WIDTH]: the global shape code
+    local = g.linear(h, WIDTH, WIDTH)
+    glob = g.linear(pooled, WIDTH, WIDTH)
+    h = g.op("Relu", [g.op("Add", [local, glob])])  # broadcast the global code over nodes
+    return g.linear(h, WIDTH, 3, scale=OUTPUT_SCALE)
+
+
+def feature_columns(channels: list[str]) -> list[str]:
+    return [f"{c}{i}" for c in channels for i in range(len(SCALE[c]))]
+
+
+def fails_when_grasped(g: GraphBuilder, out: str) -> str:
+    """Adds zero to `out`, via a Gather whose index is out of range once any node is active: the graph
+    runs at warm-up (nothing grasped) and fails on every real request."""
+    active = g.op(
+        "Slice",
+        [
+            "features",
+            g.constant(np.array([6], np.int64)),
+            g.constant(np.array([7], np.int64)),
+            g.constant(np.array([2], np.int64)),
+        ],
+    )
+    any_active = g.op("ReduceMax", [active], keepdims=0)
+    index = g.op("Cast", [g.op("Mul", [any_active, g.constant(np.array(1e6, np.float32))])], to=TensorProto.INT64)
+    picked = g.op("Gather", [g.constant(np.zeros(3, np.float32)), index])
+    return g.op("Add", [out, picked])
+
+
+def write_model(
+    directory: Path,
+    body: str,
+    channels: list[str],
+    mode: str,
+    mesh: Mesh,
+    seed: int,
+    description: str,
+    input_name: str = "features",
+    output_dims: tuple[str | int, str | int, int] = ("batch", "nodes", 3),
+    faulty: bool = False,
+    prior: tuple[float, float, float] = (0.45, 0.05, 1e-3),
+) -> None:
+    g = GraphBuilder(seed)
+    out = mlp(g, channels, int(output_dims[2])) if body == "mlp" else pointnet(g, channels)
+    if faulty:
+        out = fails_when_grasped(g, out)
+    g.nodes.append(helper.make_node("Identity", [out], ["displacement"]))
+    c = len(feature_columns(channels))
+    graph = helper.make_graph(
+        g.nodes,
+        directory.name,
+        [helper.make_tensor_value_info("features", TensorProto.FLOAT, ["batch", "nodes", c])],
+        [helper.make_tensor_value_info("displacement", TensorProto.FLOAT, list(output_dims))],
+        g.initializers,
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)], producer_name="nak-test-models")
+    model.ir_version = 8
+    onnx.checker.check_model(model)
+    if input_name != "features":
+        model.graph.input[0].name = input_name
+        for node in model.graph.node:
+            node.input[:] = [input_name if i == "features" else i for i in node.input]
+    directory.mkdir(parents=True, exist_ok=True)
+    onnx.save(model, directory / "model.onnx")
+    listed = ", ".join(f'"{c}"' for c in channels)
+    (directory / "manifest.toml").write_text(
+        f"""# Test model made by tests/models/make_models.py: fixed random weights, not trained.
+[model]
+name = "{directory.name}"
+mode = "{mode}"
+regime = "linear"
+inputs = [{listed}]
+description = "{description}"
+
+[mesh]
+name = "{mesh.name}"
+content_hash = "{mesh.content_hash}"
+node_count = {mesh.node_count}
+
+[prior]
+poisson_ratio = {prior[0]}
+epsilon_m = {prior[1]}
+lambda = {prior[2]}
+
+[provenance]
+made_by = "tests/models/make_models.py"
+seed = {seed}
+"""
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--nak", type=Path, default=ROOT / "target" / "debug" / "nak")
+    args = parser.parse_args()
+    meshes = [
+        describe_mesh("phantom-liver", ROOT / "models" / "phantom-liver" / "liver.msh", args.nak),
+        describe_mesh("phantom-liver-coarse", ROOT / "models" / "phantom-liver" / "liver-coarse.msh", args.nak),
+    ]
+    models = [
+        ("mlp-residual", "mlp", BASE_CHANNELS, "residual", "per-node MLP 7-64-64-3"),
+        (
+            "mlp-direct-prior",
+            "mlp",
+            BASE_CHANNELS + [PRIOR_CHANNEL],
+            "direct",
+            "per-node MLP 10-64-64-3 reading the prior",
+        ),
+        ("pointnet-residual", "pointnet", BASE_CHANNELS, "residual", "PointNet-style, global max-pool, width 64"),
+        ("pointnet-direct", "pointnet", BASE_CHANNELS, "direct", "PointNet-style, global max-pool, width 64"),
+    ]
+    for mesh in meshes:
+        for seed, (name, body, channels, mode, description) in enumerate(models, start=1):
+            write_model(HERE / mesh.directory / name, body, channels, mode, mesh, seed, description)
+    coarse = meshes[1]
+    faulty = HERE / "faulty"
+    write_model(
+        faulty / "fails-at-run-time" / "fails-at-run-time",
+        "mlp",
+        BASE_CHANNELS,
+        "residual",
+        coarse,
+        11,
+        "fails on any request with a grasp",
+        faulty=True,
+    )
+    write_model(
+        faulty / "wrong-input-name" / "wrong-input-name",
+        "mlp",
+        BASE_CHANNELS,
+        "residual",
+        coarse,
+        12,
+        "input named x",
+        input_name="x",
+    )
+    write_model(
+        faulty / "wrong-output-shape" / "wrong-output-shape",
+        "mlp",
+        BASE_CHANNELS,
+        "residual",
+        coarse,
+        13,
+        "declares 4 output channels",
+        output_dims=("batch", "nodes", 4),
+    )
+    write_model(
+        faulty / "wrong-prior" / "wrong-prior",
+        "mlp",
+        BASE_CHANNELS,
+        "residual",
+        coarse,
+        14,
+        "trained with epsilon 0.03",
+        prior=(0.45, 0.03, 1e-3),
+    )
+    print(f"wrote models for {', '.join(m.directory for m in meshes)} and faulty cases under {HERE}")
+
+
+if __name__ == "__main__":
+    main()

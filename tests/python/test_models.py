@@ -1,0 +1,87 @@
+"""Served networks agree with an independent evaluation of the same .onnx files by onnxruntime in Python."""
+
+from __future__ import annotations
+
+import subprocess
+import tomllib
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import client
+import grpc
+import numpy as np
+import onnxruntime
+import pytest
+from conftest import ROOT, start_server
+
+MODELS = ROOT / "tests" / "models" / "phantom-liver-coarse"
+
+
+@pytest.fixture(scope="module")
+def coarse_server(nak_binary: Path) -> Iterator[str]:
+    args = ["--mesh", str(ROOT / "models/phantom-liver/liver-coarse.msh"), "--models", str(MODELS)]
+    with start_server(nak_binary, args) as address:
+        yield address
+
+
+def manifest(name: str) -> dict[str, Any]:
+    with open(MODELS / name / "manifest.toml", "rb") as f:
+        return tomllib.load(f)
+
+
+@pytest.mark.parametrize("name", ["mlp-residual", "mlp-direct-prior", "pointnet-residual", "pointnet-direct"])
+def test_served_field_matches_onnxruntime(coarse_server: str, name: str) -> None:
+    pb, rpc = client.load_stubs()
+    with grpc.insecure_channel(coarse_server) as channel:
+        stub = rpc.DeformationStub(channel)
+        mesh = stub.GetMesh(pb.GetMeshRequest())
+        positions = np.frombuffer(mesh.positions, dtype="<f4").reshape(-1, 3)
+        sets = {s.name: list(s.nodes) for s in mesh.node_sets}
+        grasps = [
+            pb.Grasp(nodes=sets["grasp_03"][:10], displacement=pb.Vec3(x=0.01, y=0.03, z=-0.01)),
+            pb.Grasp(nodes=sets["grasp_08"][:10], displacement=pb.Vec3(x=-0.02, y=0.02, z=0.015)),
+        ]
+
+        def field(model: str) -> np.ndarray:
+            response = stub.Predict(pb.PredictRequest(model=model, grasps=grasps))
+            return np.frombuffer(response.displacements, dtype="<f4").reshape(-1, 3)
+
+        served, prior = field(name), field("kelvinlet")
+
+    info = manifest(name)["model"]
+    n = len(positions)
+    features = np.zeros((1, n, 10 if "prior" in info["inputs"] else 7), dtype=np.float32)
+    features[0, :, 0:3] = positions
+    for g in grasps:
+        for node in g.nodes:
+            features[0, node, 3:6] = (g.displacement.x, g.displacement.y, g.displacement.z)
+            features[0, node, 6] = 1.0
+    if "prior" in info["inputs"]:
+        features[0, :, 7:10] = prior
+    session = onnxruntime.InferenceSession(str(MODELS / name / "model.onnx"), providers=["CPUExecutionProvider"])
+    (network,) = session.run(["displacement"], {"features": features})
+    expected = network[0] + (prior if info["mode"] == "residual" else 0.0)
+    relative = np.linalg.norm(served - expected) / np.linalg.norm(expected)
+    assert relative < 1e-5, f"{name}: relative difference {relative:.2e}"
+
+
+def test_serving_models_without_onnxruntime_names_what_is_missing(nak_binary: Path) -> None:
+    result = subprocess.run(
+        [
+            str(nak_binary),
+            "serve",
+            "--listen",
+            "127.0.0.1:0",
+            "--mesh",
+            str(ROOT / "models/phantom-liver/liver-coarse.msh"),
+            "--models",
+            str(MODELS),
+        ],
+        env={"PATH": "/usr/bin:/bin", "RUST_BACKTRACE": "0"},
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert result.returncode != 0
+    assert "ORT_DYLIB_PATH" in result.stderr and "onnxruntime==1.31.1" in result.stderr, result.stderr
