@@ -48,8 +48,8 @@ enum Command {
 
 #[derive(clap::Args)]
 struct ServeArgs {
-    /// TOML file with any of: mesh, listen, max_displacement_mm, max_interaction_points,
-    /// max_message_bytes. Flags override it.
+    /// TOML file with any of: mesh, models, ort_dylib, listen, max_displacement_mm,
+    /// max_interaction_points, max_message_bytes. Flags override it.
     #[arg(long)]
     config: Option<PathBuf>,
     /// A model directory (its default mesh) or an .msh file with model.toml beside it
