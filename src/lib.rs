@@ -3,6 +3,8 @@
 //! The library behind the `nak` binary: meshes ([`mesh`]), the Kelvinlet prior ([`prior`]), the
 //! prediction engine ([`engine`]) and the gRPC service ([`serve`]).
 
+pub mod bench;
+pub mod data;
 pub mod engine;
 pub mod mesh;
 pub mod model;

@@ -39,6 +39,8 @@ enum Command {
     Serve(ServeArgs),
     /// Evaluate one set of grasps offline through the serving engine and write the field as .npy.
     Predict(PredictArgs),
+    /// Load-test a nak server: open or closed loop, unary or streaming, HDR latency percentiles.
+    Bench(cli::bench::BenchArgs),
     /// Inspect meshes.
     Mesh {
         #[command(subcommand)]
@@ -122,6 +124,7 @@ fn main() -> anyhow::Result<()> {
     match cli.command {
         Command::Serve(args) => serve(args),
         Command::Predict(args) => predict(args),
+        Command::Bench(args) => cli::bench::run(args),
         Command::Mesh {
             command: MeshCommand::Info { path },
         } => {

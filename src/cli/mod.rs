@@ -1,2 +1,3 @@
+pub mod bench;
 pub mod mesh_info;
 pub mod predict;

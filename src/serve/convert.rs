@@ -4,7 +4,7 @@ use bytes::Bytes;
 use tonic::{Code, Status};
 
 use crate::engine::{EngineError, Grasp, ModelInfo, ModelKind, Prediction, Request, Selection};
-use crate::mesh::TetMesh;
+use crate::mesh::{Sampling, TetMesh};
 use crate::proto::v1 as pb;
 
 /// A vector of f32 handed to the response as little-endian bytes without copying.
@@ -137,5 +137,23 @@ pub fn mesh(mesh: &TetMesh) -> pb::Mesh {
             epsilon_m: p.epsilon,
             lambda: p.lambda,
         }),
+        sampling: Some(sampling(&mesh.config.sampling)),
+    }
+}
+
+fn sampling(s: &Sampling) -> pb::SamplingParameters {
+    pb::SamplingParameters {
+        displacement_min_m: s.displacement_min.to_vec(),
+        displacement_max_m: s.displacement_max.to_vec(),
+        neighbours_min: s.neighbours.0 as u32,
+        neighbours_max: s.neighbours.1 as u32,
+        grasp_regions: s
+            .grasp_regions
+            .iter()
+            .map(|r| pb::GraspRegion {
+                node_set: r.node_set.clone(),
+                weight: r.weight,
+            })
+            .collect(),
     }
 }

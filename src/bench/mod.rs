@@ -1,0 +1,409 @@
+//! `nak bench`: a latency load tester for nak servers.
+//!
+//! Closed loop (`rate = None`): each of `concurrency` workers sends its next request as soon as the
+//! last one is answered. Open loop (`rate = Some(r)`): requests are due at a constant rate, and latency
+//! is measured from when a request was *due*, not when it went out, so a server that falls behind
+//! shows its queueing instead of hiding it (coordinated omission). Requests are drawn from the paper's
+//! distribution p over the mesh the server reports, reproducibly from the seed.
+
+mod report;
+mod requests;
+
+use std::collections::{BTreeMap, VecDeque};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use hdrhistogram::Histogram;
+use tokio::time::Instant;
+use tonic::transport::{Channel, Endpoint};
+
+pub use report::{Percentiles, Report};
+pub use requests::{RequestsError, draw, sampler_for};
+
+use crate::proto::v1::PredictRequest;
+use crate::proto::v1::deformation_client::DeformationClient;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Mode {
+    Unary,
+    Stream,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct BenchConfig {
+    /// `http://host:port`.
+    pub target: String,
+    pub model: String,
+    pub mode: Mode,
+    /// Workers (unary) or streams (stream mode), each on its own connection.
+    pub concurrency: usize,
+    /// Offered load in requests per second over all workers; `None`: closed loop, as fast as answered.
+    pub rate: Option<f64>,
+    pub duration: Duration,
+    /// Sent but not measured, before the measured window.
+    pub warmup: Duration,
+    pub graspers: usize,
+    pub seed: u64,
+    /// Distinct requests drawn (cycled through).
+    pub distinct_requests: usize,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum BenchError {
+    #[error("cannot connect to {target}: {source}")]
+    Connect {
+        target: String,
+        #[source]
+        source: tonic::transport::Error,
+    },
+    #[error(transparent)]
+    Requests(#[from] RequestsError),
+    #[error("invalid configuration: {0}")]
+    Config(String),
+}
+
+/// A live view of a running test, for progress displays.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Progress {
+    pub elapsed: Duration,
+    pub total: Duration,
+    pub completed: u64,
+    pub errors: u64,
+    pub p50_us: f64,
+    pub p99_us: f64,
+}
+
+/// Latencies and outcomes of the measured window, shared by the workers.
+struct Recorder {
+    window: (Instant, Instant),
+    latency: Mutex<Histogram<u64>>,
+    server: Mutex<Histogram<u64>>,
+    errors: Mutex<BTreeMap<String, u64>>,
+    completed: AtomicU64,
+    failed: AtomicU64,
+}
+
+/// 1 µs to 100 s at 3 significant digits.
+fn histogram() -> Result<Histogram<u64>, BenchError> {
+    Histogram::new_with_bounds(1, 100_000_000, 3)
+        .map_err(|e| BenchError::Config(format!("histogram: {e}")))
+}
+
+impl Recorder {
+    fn new(window: (Instant, Instant)) -> Result<Self, BenchError> {
+        Ok(Self {
+            window,
+            latency: Mutex::new(histogram()?),
+            server: Mutex::new(histogram()?),
+            errors: Mutex::new(BTreeMap::new()),
+            completed: AtomicU64::new(0),
+            failed: AtomicU64::new(0),
+        })
+    }
+
+    fn snapshot(shared: &Mutex<Histogram<u64>>) -> Result<Histogram<u64>, BenchError> {
+        match shared.lock() {
+            Ok(h) => Ok(h.clone()),
+            Err(_) => histogram(),
+        }
+    }
+
+    /// Records one answer to a request due at `due`; answers to requests due outside the window are
+    /// not counted.
+    fn record(&self, due: Instant, outcome: Result<f32, String>) {
+        if due < self.window.0 || due >= self.window.1 {
+            return;
+        }
+        let micros = due.elapsed().as_micros().max(1) as u64;
+        if let Ok(mut h) = self.latency.lock() {
+            h.saturating_record(micros);
+        }
+        self.completed.fetch_add(1, Ordering::Relaxed);
+        match outcome {
+            Ok(server_us) => {
+                if let Ok(mut h) = self.server.lock() {
+                    h.saturating_record(server_us.max(1.0) as u64);
+                }
+            }
+            Err(code) => {
+                self.failed.fetch_add(1, Ordering::Relaxed);
+                if let Ok(mut errors) = self.errors.lock() {
+                    *errors.entry(code).or_default() += 1;
+                }
+            }
+        }
+    }
+
+    fn progress(&self, start: Instant, total: Duration) -> Progress {
+        let (p50_us, p99_us) = self
+            .latency
+            .lock()
+            .map(|h| {
+                (
+                    h.value_at_quantile(0.5) as f64,
+                    h.value_at_quantile(0.99) as f64,
+                )
+            })
+            .unwrap_or_default();
+        Progress {
+            elapsed: start.elapsed(),
+            total,
+            completed: self.completed.load(Ordering::Relaxed),
+            errors: self.failed.load(Ordering::Relaxed),
+            p50_us,
+            p99_us,
+        }
+    }
+}
+
+/// `INVALID_ARGUMENT` for `Code::InvalidArgument`: the names gRPC documentation uses.
+fn code_name(code: tonic::Code) -> String {
+    let camel = format!("{code:?}");
+    let mut name = String::new();
+    for (i, c) in camel.chars().enumerate() {
+        if c.is_uppercase() && i > 0 {
+            name.push('_');
+        }
+        name.push(c.to_ascii_uppercase());
+    }
+    name
+}
+
+async fn connect(target: &str) -> Result<DeformationClient<Channel>, BenchError> {
+    let error = |source| BenchError::Connect {
+        target: target.to_owned(),
+        source,
+    };
+    let endpoint = Endpoint::from_shared(target.to_owned())
+        .map_err(error)?
+        .tcp_nodelay(true)
+        // A full field is ~116 kB: a window that holds it avoids a flow-control round trip per answer.
+        .initial_stream_window_size(4 << 20)
+        .initial_connection_window_size(8 << 20);
+    let channel = endpoint.connect().await.map_err(error)?;
+    Ok(DeformationClient::new(channel).max_decoding_message_size(256 << 20))
+}
+
+/// Runs one load test; `progress` is called about four times a second.
+pub async fn run(config: &BenchConfig, progress: impl Fn(Progress)) -> Result<Report, BenchError> {
+    if config.concurrency == 0
+        || config.rate.is_some_and(|r| r.is_nan() || r <= 0.0)
+        || config.distinct_requests == 0
+    {
+        return Err(BenchError::Config(
+            "concurrency, rate and distinct requests must be positive".into(),
+        ));
+    }
+    let mut first = connect(&config.target).await?;
+    let sampler = sampler_for(&mut first).await?;
+    let pool = Arc::new(draw(
+        &sampler,
+        &config.model,
+        config.graspers,
+        config.seed,
+        config.distinct_requests,
+    )?);
+    let mut clients = vec![first];
+    for _ in 1..config.concurrency {
+        clients.push(connect(&config.target).await?);
+    }
+
+    let start = Instant::now() + Duration::from_millis(50);
+    let measure_from = start + config.warmup;
+    let end = measure_from + config.duration;
+    let recorder = Arc::new(Recorder::new((measure_from, end))?);
+    let counter = Arc::new(AtomicU64::new(0));
+    let mut pacer_queues = Vec::new();
+    let mut workers = tokio::task::JoinSet::new();
+    for client in clients {
+        let due = config.rate.map(|_| {
+            let (tx, rx) = tokio::sync::mpsc::unbounded_channel();
+            pacer_queues.push(tx);
+            rx
+        });
+        let job = Job {
+            client,
+            pool: pool.clone(),
+            recorder: recorder.clone(),
+            counter: counter.clone(),
+            due,
+            start,
+            end,
+        };
+        match config.mode {
+            Mode::Unary => workers.spawn(job.unary()),
+            Mode::Stream => workers.spawn(job.stream()),
+        };
+    }
+    if let Some(rate) = config.rate {
+        std::thread::spawn(move || pace(rate, start, end, pacer_queues));
+    }
+    let total = end - start;
+    let mut ticker = tokio::time::interval(Duration::from_millis(250));
+    loop {
+        tokio::select! {
+            done = workers.join_next() => if done.is_none() { break },
+            _ = ticker.tick() => progress(recorder.progress(start, total)),
+        }
+    }
+    progress(recorder.progress(start, total));
+
+    let latency = Recorder::snapshot(&recorder.latency)?;
+    let server = Recorder::snapshot(&recorder.server)?;
+    let requests = latency.len();
+    Ok(Report {
+        target: config.target.clone(),
+        model: config.model.clone(),
+        mode: match config.mode {
+            Mode::Unary => "unary".into(),
+            Mode::Stream => "stream".into(),
+        },
+        concurrency: config.concurrency,
+        rate_rps: config.rate,
+        duration_s: config.duration.as_secs_f64(),
+        graspers: config.graspers,
+        seed: config.seed,
+        requests,
+        throughput_rps: requests as f64 / config.duration.as_secs_f64(),
+        latency_us: Percentiles::of(&latency),
+        server_us: Percentiles::of(&server),
+        errors: recorder
+            .errors
+            .lock()
+            .map(|e| e.clone())
+            .unwrap_or_default(),
+    })
+}
+
+/// One worker's share of the test. Open loop: `due` yields (request number, due time) from the pacer;
+/// closed loop: `due` is `None` and the worker sends as soon as its last answer arrived.
+struct Job {
+    client: DeformationClient<Channel>,
+    pool: Arc<Vec<PredictRequest>>,
+    recorder: Arc<Recorder>,
+    counter: Arc<AtomicU64>,
+    due: Option<tokio::sync::mpsc::UnboundedReceiver<(u64, Instant)>>,
+    start: Instant,
+    end: Instant,
+}
+
+fn request(pool: &[PredictRequest], k: u64) -> PredictRequest {
+    let mut r = pool[(k % pool.len() as u64) as usize].clone();
+    r.sequence = k;
+    r
+}
+
+/// Releases request k at `start + k / rate` to worker `k mod workers`, from its own thread.
+///
+/// tokio's timers tick in whole milliseconds, which would add up to 1 ms of the load generator's own
+/// lateness to every open-loop latency; a thread sleeping with `nanosleep` is late by tens of µs.
+fn pace(
+    rate: f64,
+    start: Instant,
+    end: Instant,
+    workers: Vec<tokio::sync::mpsc::UnboundedSender<(u64, Instant)>>,
+) {
+    let (start, end) = (start.into_std(), end.into_std());
+    for k in 0u64.. {
+        let due = start + Duration::from_secs_f64(k as f64 / rate);
+        if due >= end {
+            break;
+        }
+        if let Some(wait) = due.checked_duration_since(std::time::Instant::now()) {
+            std::thread::sleep(wait);
+        }
+        // A worker that has gone (its connection failed) simply receives no more.
+        let _ = workers[(k % workers.len() as u64) as usize].send((k, Instant::from_std(due)));
+    }
+}
+
+impl Job {
+    /// Next request number and its due time; `None` when the test is over.
+    async fn next(&mut self) -> Option<(u64, Instant)> {
+        match &mut self.due {
+            Some(due) => due.recv().await,
+            None => {
+                let now = Instant::now();
+                if now < self.start {
+                    tokio::time::sleep_until(self.start).await;
+                }
+                let now = Instant::now();
+                (now < self.end).then(|| (self.counter.fetch_add(1, Ordering::Relaxed), now))
+            }
+        }
+    }
+
+    async fn unary(mut self) {
+        while let Some((k, due)) = self.next().await {
+            let outcome = match self.client.predict(request(&self.pool, k)).await {
+                Ok(r) => Ok(r.into_inner().timing.map_or(0.0, |t| t.total_us)),
+                Err(status) => Err(code_name(status.code())),
+            };
+            self.recorder.record(due, outcome);
+        }
+    }
+
+    /// One stream: a sender task sends requests when due (open loop) or when the previous answer
+    /// arrived (closed loop), and this task matches answers, which come in order, to their due times.
+    async fn stream(mut self) {
+        let (tx, rx) = tokio::sync::mpsc::channel::<PredictRequest>(64);
+        let mut answers = match self
+            .client
+            .predict_stream(tokio_stream::wrappers::ReceiverStream::new(rx))
+            .await
+        {
+            Ok(r) => r.into_inner(),
+            Err(status) => {
+                self.recorder
+                    .record(self.recorder.window.0, Err(code_name(status.code())));
+                return;
+            }
+        };
+        let due_times: Arc<Mutex<VecDeque<Instant>>> = Arc::default();
+        let (answered_tx, mut answered_rx) = tokio::sync::mpsc::channel::<()>(1);
+        let closed_loop = self.due.is_none();
+        let pool = self.pool.clone();
+        let recorder = self.recorder.clone();
+        let sender = {
+            let due_times = due_times.clone();
+            tokio::spawn(async move {
+                let mut first = true;
+                loop {
+                    if closed_loop && !first && answered_rx.recv().await.is_none() {
+                        break;
+                    }
+                    first = false;
+                    let Some((k, due)) = self.next().await else {
+                        break;
+                    };
+                    if let Ok(mut d) = due_times.lock() {
+                        d.push_back(due);
+                    }
+                    if tx.send(request(&pool, k)).await.is_err() {
+                        break;
+                    }
+                }
+            })
+        };
+        loop {
+            let answer = answers.message().await;
+            let Some(due) = due_times.lock().ok().and_then(|mut d| d.pop_front()) else {
+                break;
+            };
+            let (outcome, last) = match answer {
+                Ok(Some(r)) => match r.error {
+                    Some(e) => (Err(code_name(tonic::Code::from_i32(e.code))), false),
+                    None => (Ok(r.timing.map_or(0.0, |t| t.total_us)), false),
+                },
+                Ok(None) => break,
+                Err(status) => (Err(code_name(status.code())), true),
+            };
+            recorder.record(due, outcome);
+            if last || (closed_loop && answered_tx.send(()).await.is_err()) {
+                break;
+            }
+        }
+        sender.abort();
+    }
+}

@@ -1,0 +1,97 @@
+//! What a load test found: latency percentiles, throughput and errors, as a table and as JSON.
+
+use std::collections::BTreeMap;
+
+use hdrhistogram::Histogram;
+use serde::Serialize;
+
+/// Latency percentiles in microseconds.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Percentiles {
+    pub p50: f64,
+    pub p90: f64,
+    pub p99: f64,
+    pub p999: f64,
+    pub max: f64,
+    pub mean: f64,
+}
+
+impl Percentiles {
+    pub fn of(h: &Histogram<u64>) -> Self {
+        let q = |q: f64| h.value_at_quantile(q) as f64;
+        Self {
+            p50: q(0.5),
+            p90: q(0.9),
+            p99: q(0.99),
+            p999: q(0.999),
+            max: h.max() as f64,
+            mean: h.mean(),
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Report {
+    pub target: String,
+    pub model: String,
+    pub mode: String,
+    pub concurrency: usize,
+    /// Offered load; `None` for a closed loop at maximum rate.
+    pub rate_rps: Option<f64>,
+    pub duration_s: f64,
+    pub graspers: usize,
+    pub seed: u64,
+    /// Answers received in the measured window (errors included).
+    pub requests: u64,
+    pub throughput_rps: f64,
+    /// From the intended send time (open loop) or the actual one (closed loop) to the answer.
+    pub latency_us: Percentiles,
+    /// The server's own `Timing.total_us`, for the successful answers.
+    pub server_us: Percentiles,
+    /// By gRPC status code name.
+    pub errors: BTreeMap<String, u64>,
+}
+
+impl Report {
+    pub fn table(&self) -> String {
+        let l = &self.latency_us;
+        let s = &self.server_us;
+        let rate = self.rate_rps.map_or("max (closed loop)".to_owned(), |r| {
+            format!("{r:.0}/s (open loop)")
+        });
+        let errors = if self.errors.is_empty() {
+            "none".to_owned()
+        } else {
+            self.errors
+                .iter()
+                .map(|(k, v)| format!("{k} {v}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        };
+        format!(
+            "target      {}\nmodel       {} ({}, {} grasper(s), concurrency {}, offered {})\n\
+             requests    {} in {:.1} s = {:.0}/s\n\
+             latency µs  p50 {:.0}  p90 {:.0}  p99 {:.0}  p99.9 {:.0}  max {:.0}  mean {:.0}\n\
+             server µs   p50 {:.0}  p99 {:.0}\n\
+             errors      {}",
+            self.target,
+            self.model,
+            self.mode,
+            self.graspers,
+            self.concurrency,
+            rate,
+            self.requests,
+            self.duration_s,
+            self.throughput_rps,
+            l.p50,
+            l.p90,
+            l.p99,
+            l.p999,
+            l.max,
+            l.mean,
+            s.p50,
+            s.p99,
+            errors
+        )
+    }
+}

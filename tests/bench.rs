@@ -1,0 +1,107 @@
+//! `nak bench` against a real server: every mode completes, counts add up, errors are attributed.
+//! Nothing here asserts a speed; speed is what the tool reports.
+
+mod common;
+
+use std::time::Duration;
+
+use common::server::TestServer;
+use nak::bench::{self, BenchConfig, Mode};
+
+fn config(server: &TestServer, mode: Mode, rate: Option<f64>) -> BenchConfig {
+    BenchConfig {
+        target: format!("http://{}", server.address),
+        model: "kelvinlet".into(),
+        mode,
+        concurrency: 2,
+        rate,
+        duration: Duration::from_millis(600),
+        warmup: Duration::from_millis(100),
+        graspers: 2,
+        seed: 3,
+        distinct_requests: 64,
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn open_loop_sends_exactly_the_offered_load_in_both_modes() {
+    let server = TestServer::default().await;
+    for mode in [Mode::Unary, Mode::Stream] {
+        let report = bench::run(&config(&server, mode, Some(200.0)), |_| {})
+            .await
+            .unwrap();
+        // 200/s over 0.6 s: requests due in the measured window, each answered.
+        assert!(
+            (118..=122).contains(&report.requests),
+            "{mode:?}: {}",
+            report.requests
+        );
+        assert!(report.errors.is_empty(), "{:?}", report.errors);
+        let l = report.latency_us;
+        assert!(l.p50 <= l.p90 && l.p90 <= l.p99 && l.p99 <= l.p999 && l.p999 <= l.max);
+        assert!(report.server_us.p50 > 0.0);
+    }
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn closed_loop_runs_for_the_duration_in_both_modes() {
+    let server = TestServer::default().await;
+    for mode in [Mode::Unary, Mode::Stream] {
+        let ticks = std::sync::atomic::AtomicUsize::new(0);
+        let report = bench::run(&config(&server, mode, None), |_| {
+            ticks.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        })
+        .await
+        .unwrap();
+        assert!(report.requests > 10, "{mode:?}: {}", report.requests);
+        let ticks = ticks.into_inner();
+        assert!(ticks >= 2, "progress was reported {ticks} times");
+        assert_eq!(report.rate_rps, None);
+        let json: serde_json::Value = serde_json::to_value(&report).unwrap();
+        for key in ["p50", "p90", "p99", "p999", "max"] {
+            assert!(json["latency_us"][key].is_number(), "{key}");
+        }
+        assert!(json["throughput_rps"].as_f64().unwrap() > 0.0);
+    }
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn errors_are_counted_by_status_code() {
+    let server = TestServer::default().await;
+    for mode in [Mode::Unary, Mode::Stream] {
+        let mut c = config(&server, mode, Some(100.0));
+        c.model = "no-such-model".into();
+        let report = bench::run(&c, |_| {}).await.unwrap();
+        assert_eq!(
+            report.errors.get("NOT_FOUND").copied(),
+            Some(report.requests),
+            "{mode:?}: {:?}",
+            report.errors
+        );
+        assert!(report.requests > 50);
+    }
+    server.stop().await;
+}
+
+#[tokio::test]
+async fn an_unreachable_target_is_a_clear_error() {
+    let c = BenchConfig {
+        target: "http://127.0.0.1:1".into(),
+        model: "kelvinlet".into(),
+        mode: Mode::Unary,
+        concurrency: 1,
+        rate: None,
+        duration: Duration::from_millis(100),
+        warmup: Duration::ZERO,
+        graspers: 1,
+        seed: 0,
+        distinct_requests: 1,
+    };
+    let err = bench::run(&c, |_| {}).await.unwrap_err().to_string();
+    assert!(
+        err.contains("cannot connect to http://127.0.0.1:1"),
+        "{err}"
+    );
+}
