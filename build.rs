@@ -17,5 +17,20 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     tonic_prost_build::configure()
         .bytes(".")
         .compile_fds(compiler.file_descriptor_set())?;
+
+    // Foxglove's point cloud, for MCAP recordings: its descriptor set carries every import
+    // (google/protobuf/timestamp.proto included) so generic readers can decode it alone.
+    let mut foxglove = protox::Compiler::new(["proto"])?;
+    foxglove.include_imports(true);
+    foxglove.open_file("foxglove/PointCloud.proto")?;
+    std::fs::write(
+        out_dir.join("foxglove_descriptor.bin"),
+        foxglove.encode_file_descriptor_set(),
+    )?;
+    tonic_prost_build::configure()
+        .build_client(false)
+        .build_server(false)
+        .bytes(".")
+        .compile_fds(foxglove.file_descriptor_set())?;
     Ok(())
 }

@@ -21,19 +21,13 @@ fn models(c: &mut Criterion) {
     let mesh = Arc::new(mesh::load(&MeshSource::Embedded).expect("embedded phantom"));
     let mut engine = Engine::new(mesh.clone(), Limits::default());
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/models/phantom-liver");
-    for model in
-        nak::model::load_all(&dir, &mesh, None).expect("test models (is ORT_DYLIB_PATH set?)")
-    {
+    for model in nak::model::load_all(&dir, &mesh, None).expect("test models (is ORT_DYLIB_PATH set?)") {
         engine.add_model(Arc::new(model) as Arc<dyn DeformationModel>);
     }
     let request = |model: &str| Request {
         model: model.into(),
         grasps: vec![Grasp {
-            nodes: mesh.node_sets["grasp_04"]
-                .iter()
-                .take(10)
-                .copied()
-                .collect(),
+            nodes: mesh.node_sets["grasp_04"].iter().take(10).copied().collect(),
             displacement: [0.0, 0.02, 0.0],
             ..Default::default()
         }],

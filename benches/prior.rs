@@ -7,9 +7,7 @@ use nak::prior::{InteractionPoints, Kelvinlet, NodeCloud, Workspace};
 
 /// K surface nodes from the grasp regions, in turn, each moved by a different displacement.
 fn points(mesh: &TetMesh, k: usize) -> InteractionPoints {
-    let regions: Vec<&Vec<u32>> = (1..=10)
-        .map(|i| &mesh.node_sets[&format!("grasp_{i:02}")])
-        .collect();
+    let regions: Vec<&Vec<u32>> = (1..=10).map(|i| &mesh.node_sets[&format!("grasp_{i:02}")]).collect();
     let mut points = InteractionPoints::default();
     for i in 0..k {
         let node = regions[i % 10][i / 10];

@@ -33,12 +33,7 @@ fn serve(c: &mut Criterion) {
         .block_on(tokio::net::TcpListener::bind("127.0.0.1:0"))
         .expect("bind");
     let address = listener.local_addr().expect("address");
-    server_runtime.spawn(nak::serve::run(
-        engine,
-        listener,
-        1 << 20,
-        std::future::pending(),
-    ));
+    server_runtime.spawn(nak::serve::run(engine, listener, 1 << 20, None, std::future::pending()));
 
     let client_runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
@@ -49,11 +44,7 @@ fn serve(c: &mut Criterion) {
         .initial_stream_window_size(4 << 20)
         .initial_connection_window_size(8 << 20)
         .tcp_nodelay(true);
-    let mut client = DeformationClient::new(
-        client_runtime
-            .block_on(endpoint.connect())
-            .expect("connect"),
-    );
+    let mut client = DeformationClient::new(client_runtime.block_on(endpoint.connect()).expect("connect"));
     let mut group = c.benchmark_group("loopback");
     group.bench_function("unary_predict_k20", |b| {
         b.to_async(&client_runtime).iter(|| {
@@ -72,11 +63,7 @@ fn serve(c: &mut Criterion) {
         b.iter(|| {
             client_runtime.block_on(async {
                 tx.send(message.clone()).await.expect("send");
-                answers
-                    .message()
-                    .await
-                    .expect("answer")
-                    .expect("open stream")
+                answers.message().await.expect("answer").expect("open stream")
             })
         })
     });

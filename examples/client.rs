@@ -11,10 +11,7 @@ async fn main() -> anyhow::Result<()> {
         .nth(1)
         .unwrap_or_else(|| "http://127.0.0.1:50051".into());
     let mut client = DeformationClient::connect(target).await?;
-    let mesh = client
-        .get_mesh(GetMeshRequest::default())
-        .await?
-        .into_inner();
+    let mesh = client.get_mesh(GetMeshRequest::default()).await?.into_inner();
     let grasp_04 = mesh
         .node_sets
         .iter()

@@ -10,4 +10,5 @@ pub mod mesh;
 pub mod model;
 pub mod prior;
 pub mod proto;
+pub mod record;
 pub mod serve;

@@ -2,6 +2,7 @@
 
 mod cli;
 
+use std::collections::BTreeMap;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -10,6 +11,7 @@ use anyhow::Context;
 use clap::{Parser, Subcommand, ValueEnum};
 use nak::engine::{DeformationModel, Engine};
 use nak::mesh::{self, MeshSource, TetMesh};
+use nak::record::{Payload, Recorder};
 use nak::serve::{self, ServeConfig};
 use tracing::info;
 
@@ -41,6 +43,8 @@ enum Command {
     Predict(PredictArgs),
     /// Load-test a nak server: open or closed loop, unary or streaming, HDR latency percentiles.
     Bench(cli::bench::BenchArgs),
+    /// Re-send the requests of an MCAP recording and compare the answers with the recorded ones.
+    Replay(cli::replay::ReplayArgs),
     /// Inspect meshes.
     Mesh {
         #[command(subcommand)]
@@ -72,6 +76,24 @@ struct ServeArgs {
     max_message_bytes: Option<usize>,
     #[command(flatten)]
     models: ModelArgs,
+    /// Record every exchange to MCAP files in this directory (open them in Foxglove or with `nak replay`).
+    #[arg(long, value_name = "DIR")]
+    record: Option<PathBuf>,
+    /// Displacements written per answer [default: surface].
+    #[arg(long, value_enum)]
+    record_payload: Option<Payload>,
+    /// Start a new recording file after this many MiB [default: 1024].
+    #[arg(long)]
+    record_rotate_mb: Option<u64>,
+    /// Start a new recording file after this many minutes [default: 60].
+    #[arg(long)]
+    record_rotate_minutes: Option<u64>,
+    /// Exchanges queued for the recorder before new ones are dropped (never delayed) [default: 4096].
+    #[arg(long)]
+    record_queue: Option<usize>,
+    /// Most deformed-surface point clouds per second on the Foxglove channel [default: 30].
+    #[arg(long)]
+    record_scene_hz: Option<f64>,
 }
 
 /// Where networks come from.
@@ -125,6 +147,7 @@ fn main() -> anyhow::Result<()> {
         Command::Serve(args) => serve(args),
         Command::Predict(args) => predict(args),
         Command::Bench(args) => cli::bench::run(args),
+        Command::Replay(args) => cli::replay::run(args),
         Command::Mesh {
             command: MeshCommand::Info { path },
         } => {
@@ -155,23 +178,23 @@ fn load_mesh(path: Option<&Path>) -> anyhow::Result<TetMesh> {
 fn serve_config(args: ServeArgs) -> anyhow::Result<ServeConfig> {
     let mut config = match &args.config {
         Some(path) => {
-            let text = std::fs::read_to_string(path)
-                .with_context(|| format!("cannot read {}", path.display()))?;
-            toml::from_str(&text)
-                .with_context(|| format!("{}: invalid serve configuration", path.display()))?
+            let text = std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+            toml::from_str(&text).with_context(|| format!("{}: invalid serve configuration", path.display()))?
         }
         None => ServeConfig::default(),
     };
     config.mesh = args.mesh.or(config.mesh);
     config.listen = args.listen.unwrap_or(config.listen);
-    config.max_displacement_mm = args
-        .max_displacement_mm
-        .unwrap_or(config.max_displacement_mm);
-    config.max_interaction_points = args
-        .max_interaction_points
-        .unwrap_or(config.max_interaction_points);
+    config.max_displacement_mm = args.max_displacement_mm.unwrap_or(config.max_displacement_mm);
+    config.max_interaction_points = args.max_interaction_points.unwrap_or(config.max_interaction_points);
     config.max_message_bytes = args.max_message_bytes.unwrap_or(config.max_message_bytes);
     config.models.extend(args.models.dirs);
+    config.record = args.record.or(config.record);
+    config.record_payload = args.record_payload.unwrap_or(config.record_payload);
+    config.record_rotate_mb = args.record_rotate_mb.unwrap_or(config.record_rotate_mb);
+    config.record_rotate_minutes = args.record_rotate_minutes.unwrap_or(config.record_rotate_minutes);
+    config.record_queue = args.record_queue.unwrap_or(config.record_queue);
+    config.record_scene_hz = args.record_scene_hz.unwrap_or(config.record_scene_hz);
     config.ort_dylib = args.models.ort_dylib.or(config.ort_dylib);
     Ok(config)
 }
@@ -201,15 +224,42 @@ fn serve(args: ServeArgs) -> anyhow::Result<()> {
             .with_context(|| format!("cannot listen on {}", config.listen))?;
         // Scripts and tests read this line to find a port chosen with --listen 127.0.0.1:0.
         info!(address = %listener.local_addr()?, "listening");
+        let recorder = start_recorder(&config, &engine)?;
         serve::run(
             engine,
             listener,
             config.max_message_bytes,
+            recorder.clone(),
             serve::shutdown_signal(),
         )
         .await?;
+        if let Some(recorder) = recorder {
+            recorder.close().context("the recording was not finished cleanly")?;
+        }
         anyhow::Ok(())
     })
+}
+
+/// The MCAP recorder, when `--record` is given; its metadata describes the mesh, models and settings.
+fn start_recorder(config: &ServeConfig, engine: &Engine) -> anyhow::Result<Option<Arc<Recorder>>> {
+    let Some(recording) = config.recording() else {
+        return Ok(None);
+    };
+    let mesh = engine.mesh().clone();
+    let models: BTreeMap<&str, &BTreeMap<String, String>> =
+        engine.models().map(|m| (m.name.as_str(), &m.metadata)).collect();
+    let metadata = BTreeMap::from([
+        ("server_version".to_owned(), env!("CARGO_PKG_VERSION").to_owned()),
+        ("mesh_name".to_owned(), mesh.config.name.clone()),
+        ("mesh_hash".to_owned(), mesh.content_hash.clone()),
+        ("mesh_nodes".to_owned(), mesh.node_count().to_string()),
+        ("models".to_owned(), serde_json::to_string(&models)?),
+        ("config".to_owned(), serde_json::to_string(config)?),
+    ]);
+    let directory = recording.directory.clone();
+    let recorder = Recorder::start(recording, mesh, metadata)
+        .with_context(|| format!("cannot record to {}", directory.display()))?;
+    Ok(Some(Arc::new(recorder)))
 }
 
 fn predict(args: PredictArgs) -> anyhow::Result<()> {
@@ -241,9 +291,7 @@ fn predict(args: PredictArgs) -> anyhow::Result<()> {
 }
 
 /// Writes to stdout; a reader that goes away early (`nak mesh info | head`) is not an error.
-fn print_or_pipe_closed(
-    f: impl FnOnce(&mut std::io::StdoutLock) -> std::io::Result<()>,
-) -> anyhow::Result<()> {
+fn print_or_pipe_closed(f: impl FnOnce(&mut std::io::StdoutLock) -> std::io::Result<()>) -> anyhow::Result<()> {
     match f(&mut std::io::stdout().lock()) {
         Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => Ok(()),
         other => Ok(other?),

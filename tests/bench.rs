@@ -27,15 +27,9 @@ fn config(server: &TestServer, mode: Mode, rate: Option<f64>) -> BenchConfig {
 async fn open_loop_sends_exactly_the_offered_load_in_both_modes() {
     let server = TestServer::default().await;
     for mode in [Mode::Unary, Mode::Stream] {
-        let report = bench::run(&config(&server, mode, Some(200.0)), |_| {})
-            .await
-            .unwrap();
+        let report = bench::run(&config(&server, mode, Some(200.0)), |_| {}).await.unwrap();
         // 200/s over 0.6 s: requests due in the measured window, each answered.
-        assert!(
-            (118..=122).contains(&report.requests),
-            "{mode:?}: {}",
-            report.requests
-        );
+        assert!((118..=122).contains(&report.requests), "{mode:?}: {}", report.requests);
         assert!(report.errors.is_empty(), "{:?}", report.errors);
         let l = report.latency_us;
         assert!(l.p50 <= l.p90 && l.p90 <= l.p99 && l.p99 <= l.p999 && l.p999 <= l.max);
@@ -100,8 +94,5 @@ async fn an_unreachable_target_is_a_clear_error() {
         distinct_requests: 1,
     };
     let err = bench::run(&c, |_| {}).await.unwrap_err().to_string();
-    assert!(
-        err.contains("cannot connect to http://127.0.0.1:1"),
-        "{err}"
-    );
+    assert!(err.contains("cannot connect to http://127.0.0.1:1"), "{err}");
 }

@@ -26,10 +26,7 @@ fn serve_answers_on_the_embedded_phantom_and_stops_cleanly_on_sigterm() {
         .unwrap();
     let mut lines = BufReader::new(child.stderr.take().unwrap()).lines();
     let address = loop {
-        let line = lines
-            .next()
-            .expect("server exited before listening")
-            .unwrap();
+        let line = lines.next().expect("server exited before listening").unwrap();
         let record: serde_json::Value = serde_json::from_str(&line).unwrap();
         if record["fields"]["message"] == "listening" {
             break record["fields"]["address"].as_str().unwrap().to_owned();
@@ -37,21 +34,14 @@ fn serve_answers_on_the_embedded_phantom_and_stops_cleanly_on_sigterm() {
     };
     let runtime = tokio::runtime::Runtime::new().unwrap();
     let response = runtime.block_on(async {
-        let mut client = DeformationClient::connect(format!("http://{address}"))
-            .await
-            .unwrap();
+        let mut client = DeformationClient::connect(format!("http://{address}")).await.unwrap();
         let mesh = client
             .get_mesh(nak::proto::v1::GetMeshRequest::default())
             .await
             .unwrap()
             .into_inner();
         assert_eq!(mesh.name, "phantom-liver");
-        let node = mesh
-            .node_sets
-            .iter()
-            .find(|s| s.name == "grasp_04")
-            .unwrap()
-            .nodes[0];
+        let node = mesh.node_sets.iter().find(|s| s.name == "grasp_04").unwrap().nodes[0];
         client
             .predict(PredictRequest {
                 grasps: vec![Grasp {
@@ -103,11 +93,7 @@ fn predict_writes_a_float32_npy_of_every_node() {
         .arg(&out)
         .output()
         .unwrap();
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
     let bytes = std::fs::read(&out).unwrap();
     let npy = npyz::NpyFile::new(&bytes[..]).unwrap();
     assert_eq!(npy.shape(), &[2052, 3]);
@@ -161,10 +147,7 @@ fn mesh_info_summarizes_and_refuses_missing_files() {
     ] {
         assert!(text.contains(expected), "{expected} missing from:\n{text}");
     }
-    let output = nak()
-        .args(["mesh", "info", "no/such.msh"])
-        .output()
-        .unwrap();
+    let output = nak().args(["mesh", "info", "no/such.msh"]).output().unwrap();
     assert!(!output.status.success());
     assert!(String::from_utf8_lossy(&output.stderr).contains("no/such.msh"));
 }
@@ -178,11 +161,7 @@ fn a_serve_config_file_sets_the_listen_address_and_limits() {
         "listen = \"127.0.0.1:0\"\nmax_displacement_mm = 50.0\nbogus = 1\n",
     )
     .unwrap();
-    let output = nak()
-        .args(["serve", "--config"])
-        .arg(&config)
-        .output()
-        .unwrap();
+    let output = nak().args(["serve", "--config"]).arg(&config).output().unwrap();
     assert!(!output.status.success());
     assert!(String::from_utf8_lossy(&output.stderr).contains("unknown field `bogus`"));
 }
@@ -215,11 +194,7 @@ fn predict_serves_onnx_models_too() {
             .arg(&out)
             .output()
             .unwrap();
-        assert!(
-            output.status.success(),
-            "{}",
-            String::from_utf8_lossy(&output.stderr)
-        );
+        assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
         let bytes = std::fs::read(&out).unwrap();
         let values: Vec<f32> = npyz::NpyFile::new(&bytes[..]).unwrap().into_vec().unwrap();
         fields.push(values);

@@ -31,16 +31,8 @@ fn error_of(f: &Fixture) -> String {
 #[test]
 fn phantom_meshes_are_at_the_requested_scales() {
     let fine = phantom("liver.msh");
-    assert!(
-        (9_500..=11_500).contains(&fine.node_count()),
-        "{}",
-        fine.node_count()
-    );
-    assert!(
-        (35_000..=55_000).contains(&fine.tets.len()),
-        "{}",
-        fine.tets.len()
-    );
+    assert!((9_500..=11_500).contains(&fine.node_count()), "{}", fine.node_count());
+    assert!((35_000..=55_000).contains(&fine.tets.len()), "{}", fine.tets.len());
     let coarse = phantom("liver-coarse.msh");
     assert!(
         (1_500..=3_000).contains(&coarse.node_count()),
@@ -158,10 +150,7 @@ fn binary_and_ascii_files_give_the_same_mesh() {
     let binary = mesh::load(&MeshSource::File(dir.join("box-binary.msh"))).unwrap();
     // Gmsh writes ASCII coordinates with 16 significant digits, binary ones exactly.
     for (a, b) in ascii.positions.iter().zip(&binary.positions) {
-        assert!(
-            (0..3).all(|k| (a[k] - b[k]).abs() < 1e-15),
-            "{a:?} vs {b:?}"
-        );
+        assert!((0..3).all(|k| (a[k] - b[k]).abs() < 1e-15), "{a:?} vs {b:?}");
     }
     assert_eq!(ascii.positions.len(), binary.positions.len());
     assert_eq!(ascii.tets, binary.tets);
@@ -176,10 +165,7 @@ fn a_directory_loads_its_default_mesh_and_the_embedded_phantom_is_that_mesh() {
     let from_dir = mesh::load(&MeshSource::from_arg(Some(&dir))).unwrap();
     let embedded = mesh::load(&MeshSource::Embedded).unwrap();
     assert_eq!(from_dir.content_hash, embedded.content_hash);
-    assert_ne!(
-        from_dir.content_hash,
-        phantom("liver-coarse.msh").content_hash
-    );
+    assert_ne!(from_dir.content_hash, phantom("liver-coarse.msh").content_hash);
 }
 
 #[test]
@@ -209,12 +195,7 @@ fn refuses_an_unreadable_file() {
 
 #[test]
 fn refuses_a_file_that_is_not_msh() {
-    let err = TetMesh::from_msh(
-        b"solid liver\nfacet normal 0 0 1\n",
-        "liver.stl",
-        fixture_config(),
-    )
-    .unwrap_err();
+    let err = TetMesh::from_msh(b"solid liver\nfacet normal 0 0 1\n", "liver.stl", fixture_config()).unwrap_err();
     assert!(err.to_string().contains("liver.stl: line 1"), "{err}");
 }
 
@@ -253,10 +234,7 @@ fn refuses_nodes_used_by_no_tetrahedron() {
     let mut f = Fixture::grid(1);
     f.nodes.push([0.5, 0.5, 0.5]);
     let err = error_of(&f);
-    assert!(
-        err.contains("1 nodes are used by no tetrahedron, e.g. tag 9"),
-        "{err}"
-    );
+    assert!(err.contains("1 nodes are used by no tetrahedron, e.g. tag 9"), "{err}");
 }
 
 #[test]
@@ -288,10 +266,7 @@ fn refuses_overlapping_node_sets() {
     let shared = f.sets[0].1[0];
     f.sets[1].1.push(shared);
     let err = error_of(&f);
-    assert!(
-        err.contains("\"fixed\" and \"grasp_01\" overlap in 1 nodes"),
-        "{err}"
-    );
+    assert!(err.contains("\"fixed\" and \"grasp_01\" overlap in 1 nodes"), "{err}");
 }
 
 #[test]
@@ -363,20 +338,16 @@ fn open_surfaces_are_named() {
     // A tetrahedral mesh's boundary is closed by construction; the check guards surfaces built
     // from anything else, so it is exercised on an open triangle fan directly.
     let positions = vec![[0.0; 3], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 0.0]];
-    let err = mesh::topology::check_closed_manifold(&[[0, 1, 2], [1, 3, 2]], &positions, "fan")
-        .unwrap_err();
+    let err = mesh::topology::check_closed_manifold(&[[0, 1, 2], [1, 3, 2]], &positions, "fan").unwrap_err();
     assert!(
-        err.to_string()
-            .contains("fan: the boundary surface is open: 4 edges"),
+        err.to_string().contains("fan: the boundary surface is open: 4 edges"),
         "{err}"
     );
 }
 
 #[test]
 fn refuses_second_order_elements() {
-    let text = Fixture::grid(1)
-        .to_msh()
-        .replace("\n3 1 4 6\n", "\n3 1 11 6\n");
+    let text = Fixture::grid(1).to_msh().replace("\n3 1 4 6\n", "\n3 1 11 6\n");
     let err = TetMesh::from_msh(text.as_bytes(), "p2.msh", fixture_config()).unwrap_err();
     // The ten-node connectivity does not match the four-node rows, so the parser stops first.
     assert!(err.to_string().starts_with("p2.msh"), "{err}");

@@ -68,10 +68,7 @@ fn copy_model(name: &str) -> (tempfile::TempDir, PathBuf) {
     std::fs::create_dir(&dir).unwrap();
     for file in ["manifest.toml", "model.onnx"] {
         std::fs::copy(
-            test_models()
-                .join("phantom-liver-coarse")
-                .join(name)
-                .join(file),
+            test_models().join("phantom-liver-coarse").join(name).join(file),
             dir.join(file),
         )
         .unwrap();
@@ -103,10 +100,7 @@ fn every_test_model_loads_and_is_listed_with_its_manifest() {
     let mlp = engine.models().find(|m| m.name == "mlp-residual").unwrap();
     assert_eq!(mlp.regime, "linear");
     assert_eq!(mlp.metadata["mode"], "residual");
-    assert_eq!(
-        mlp.metadata["provenance.made_by"],
-        "tests/models/make_models.py"
-    );
+    assert_eq!(mlp.metadata["provenance.made_by"], "tests/models/make_models.py");
 }
 
 #[test]
@@ -171,19 +165,13 @@ fn refuses_a_missing_or_corrupt_model_file() {
     let (_root, dir) = copy_model("mlp-residual");
     std::fs::remove_file(dir.join("model.onnx")).unwrap();
     let err = load_error(&dir);
-    assert!(
-        err.contains("model.onnx") && err.contains("No such file"),
-        "{err}"
-    );
+    assert!(err.contains("model.onnx") && err.contains("No such file"), "{err}");
 
     let (_root, dir) = copy_model("mlp-residual");
     let bytes = std::fs::read(dir.join("model.onnx")).unwrap();
     std::fs::write(dir.join("model.onnx"), &bytes[..bytes.len() / 2]).unwrap();
     let err = load_error(&dir);
-    assert!(
-        err.contains("model.onnx: ONNX Runtime cannot load it"),
-        "{err}"
-    );
+    assert!(err.contains("model.onnx: ONNX Runtime cannot load it"), "{err}");
 }
 
 #[test]
@@ -208,10 +196,7 @@ fn refuses_wrong_input_or_output_names_and_shapes() {
     )
     .unwrap();
     let err = load_error(&dir);
-    assert!(
-        err.contains("input \"features\"") && err.contains("10]"),
-        "{err}"
-    );
+    assert!(err.contains("input \"features\"") && err.contains("10]"), "{err}");
 }
 
 #[test]
@@ -228,11 +213,7 @@ fn refuses_a_model_for_another_mesh_or_prior() {
     assert!(err.contains("made for a mesh of 9701 nodes"), "{err}");
 
     let hash = coarse().content_hash.clone();
-    std::fs::write(
-        dir.join("manifest.toml"),
-        manifest.replace(&hash, &"0".repeat(64)),
-    )
-    .unwrap();
+    std::fs::write(dir.join("manifest.toml"), manifest.replace(&hash, &"0".repeat(64))).unwrap();
     let err = load_error(&dir);
     assert!(err.contains("made for mesh phantom-liver (0000"), "{err}");
 
@@ -281,24 +262,16 @@ async fn a_model_failing_at_run_time_answers_internal_and_the_server_goes_on() {
         grasps: grasps.clone(),
         ..Default::default()
     };
-    let status = client
-        .predict(request("fails-at-run-time"))
-        .await
-        .unwrap_err();
+    let status = client.predict(request("fails-at-run-time")).await.unwrap_err();
     assert_eq!(status.code(), Code::Internal);
     assert!(
-        status.message().contains("fails-at-run-time failed")
-            && status.message().contains("Gather"),
+        status.message().contains("fails-at-run-time failed") && status.message().contains("Gather"),
         "{status:?}"
     );
     assert!(client.predict(request("kelvinlet")).await.is_ok());
     // The failed model itself is still there for the next request (and fails the same way).
     assert_eq!(
-        client
-            .predict(request("fails-at-run-time"))
-            .await
-            .unwrap_err()
-            .code(),
+        client.predict(request("fails-at-run-time")).await.unwrap_err().code(),
         Code::Internal
     );
     server.stop().await;
@@ -309,11 +282,7 @@ async fn timing_reports_prior_network_and_total() {
     let server = TestServer::with_engine(engine_with_models(coarse()), 1 << 20).await;
     let mut client = server.client().await;
     let mesh = server.engine.mesh().clone();
-    let nodes: Vec<u32> = mesh.node_sets["grasp_04"]
-        .iter()
-        .take(10)
-        .copied()
-        .collect();
+    let nodes: Vec<u32> = mesh.node_sets["grasp_04"].iter().take(10).copied().collect();
     let response = client
         .predict(pb::PredictRequest {
             model: "mlp-residual".into(),
@@ -333,10 +302,7 @@ async fn timing_reports_prior_network_and_total() {
         .into_inner();
     let t = response.timing.unwrap();
     assert!(t.prior_us > 0.0 && t.network_us > 0.0, "{t:?}");
-    assert!(
-        t.total_us >= t.network_us && t.total_us >= t.prior_us,
-        "{t:?}"
-    );
+    assert!(t.total_us >= t.network_us && t.total_us >= t.prior_us, "{t:?}");
     assert_eq!(response.model, "mlp-residual");
     server.stop().await;
 }

@@ -12,17 +12,12 @@ fn coarse() -> TetMesh {
 }
 
 /// DESIGN.md §3 written out directly in f64: the bracket, the normal equations, the sum.
-fn reference_field(
-    params: PriorParams,
-    points: &InteractionPoints,
-    at: &[[f64; 3]],
-) -> Vec<[f64; 3]> {
+fn reference_field(params: PriorParams, points: &InteractionPoints, at: &[[f64; 3]]) -> Vec<[f64; 3]> {
     let (nu, eps, lambda) = (params.poisson_ratio, params.epsilon, params.lambda);
     let gamma = |x: Vector3<f64>, xs: Vector3<f64>| -> Matrix3<f64> {
         let r = x - xs;
         let re = (r.norm_squared() + eps * eps).sqrt();
-        let bracket = Matrix3::identity()
-            * ((3.0 - 4.0 * nu) / re + 2.0 * (1.0 - nu) * eps * eps / re.powi(3))
+        let bracket = Matrix3::identity() * ((3.0 - 4.0 * nu) / re + 2.0 * (1.0 - nu) * eps * eps / re.powi(3))
             + r * r.transpose() / re.powi(3);
         bracket * (eps / (5.0 - 6.0 * nu))
     };
@@ -34,8 +29,7 @@ fn reference_field(
         let mut g = DMatrix::zeros(3 * k, 3 * k);
         for i in 0..k {
             for j in 0..k {
-                g.view_mut((3 * i, 3 * j), (3, 3))
-                    .copy_from(&gamma(xs[i], xs[j]));
+                g.view_mut((3 * i, 3 * j), (3, 3)).copy_from(&gamma(xs[i], xs[j]));
             }
         }
         let u = DVector::from_iterator(3 * k, points.displacements.iter().flatten().copied());
@@ -48,11 +42,7 @@ fn reference_field(
     at.iter()
         .map(|p| {
             let x = Vector3::from(*p);
-            let u: Vector3<f64> = xs
-                .iter()
-                .zip(&coefficients)
-                .map(|(xj, kj)| gamma(x, *xj) * kj)
-                .sum();
+            let u: Vector3<f64> = xs.iter().zip(&coefficients).map(|(xj, kj)| gamma(x, *xj) * kj).sum();
             [u.x, u.y, u.z]
         })
         .collect()
@@ -70,10 +60,7 @@ fn field(prior: &Kelvinlet, points: &InteractionPoints, at: &[[f64; 3]]) -> Vec<
 /// Two graspers of ten nodes each from grasp regions 2 and 7, moved by different displacements.
 fn two_graspers(m: &TetMesh) -> InteractionPoints {
     let mut points = InteractionPoints::default();
-    for (set, u) in [
-        ("grasp_02", [0.01, 0.03, -0.005]),
-        ("grasp_07", [-0.02, 0.015, 0.02]),
-    ] {
+    for (set, u) in [("grasp_02", [0.01, 0.03, -0.005]), ("grasp_07", [-0.02, 0.015, 0.02])] {
         for &n in m.node_sets[set].iter().take(10) {
             points.push(n, m.positions[n as usize], u);
         }
@@ -130,11 +117,7 @@ fn agrees_with_a_straightforward_f64_implementation() {
     assert!(err < 1e-5, "relative error {err:e}");
     // And with a single point, the direct formula.
     let mut one = InteractionPoints::default();
-    one.push(
-        points.nodes[0],
-        points.positions[0],
-        points.displacements[0],
-    );
+    one.push(points.nodes[0], points.positions[0], points.displacements[0]);
     let err = relative_error(
         &field(&prior, &one, &m.positions),
         &reference_field(params, &one, &m.positions),
@@ -149,11 +132,7 @@ fn many_points_and_meshes_that_are_not_whole_blocks() {
     let mut points = InteractionPoints::default();
     for (i, &n) in m.surface_nodes.iter().step_by(17).take(64).enumerate() {
         let t = i as f64;
-        points.push(
-            n,
-            m.positions[n as usize],
-            [0.01 * t.sin(), 0.01 * t.cos(), 0.005],
-        );
+        points.push(n, m.positions[n as usize], [0.01 * t.sin(), 0.01 * t.cos(), 0.005]);
     }
     // 1,000 nodes: not a multiple of the block size, below the parallel threshold.
     let at: Vec<[f64; 3]> = m.positions[..1000].to_vec();
@@ -184,10 +163,7 @@ fn the_field_is_linear_in_the_displacements() {
     );
     let scale = us.iter().fold(0.0f32, |acc, v| acc.max(v.abs()));
     for i in 0..us.len() {
-        assert!(
-            (ua[i] + ub[i] - us[i]).abs() <= 1e-5 * scale,
-            "component {i}"
-        );
+        assert!((ua[i] + ub[i] - us[i]).abs() <= 1e-5 * scale, "component {i}");
     }
 }
 
@@ -205,11 +181,7 @@ fn the_field_moves_with_rigid_motions_of_the_scene() {
         [r[0] + 0.03, r[1] - 0.02, r[2] + 0.01]
     };
     let mut turned = points.clone();
-    for (p, d) in turned
-        .positions
-        .iter_mut()
-        .zip(turned.displacements.iter_mut())
-    {
+    for (p, d) in turned.positions.iter_mut().zip(turned.displacements.iter_mut()) {
         *p = moved(*p);
         *d = rotate(*d);
     }
@@ -247,10 +219,7 @@ fn several_points_approximately_reproduce_their_displacements() {
     // λ = 1e-3 trades exact interpolation for conditioning; the fit stays within a few percent.
     for (n, d) in points.nodes.iter().zip(&points.displacements) {
         let got = &u[3 * *n as usize..3 * *n as usize + 3];
-        let err = (0..3)
-            .map(|k| (got[k] as f64 - d[k]).powi(2))
-            .sum::<f64>()
-            .sqrt();
+        let err = (0..3).map(|k| (got[k] as f64 - d[k]).powi(2)).sum::<f64>().sqrt();
         let size = d.iter().map(|v| v * v).sum::<f64>().sqrt();
         assert!(err < 0.05 * size, "node {n}: {got:?} vs {d:?}");
     }
@@ -264,10 +233,7 @@ fn the_phantom_field_is_identical_serially_and_in_parallel() {
     let prior = Kelvinlet::new(fine.config.prior);
     let points = two_graspers(&fine);
     let parallel = field(&prior, &points, &fine.positions);
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(1)
-        .build()
-        .unwrap();
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
     let serial = pool.install(|| field(&prior, &points, &fine.positions));
     assert_eq!(parallel, serial);
 }

@@ -75,11 +75,7 @@ async fn unary_predict_matches_the_library_prior_bit_for_bit() {
     for g in &grasps {
         let u = g.displacement.unwrap();
         for &n in &g.nodes {
-            points.push(
-                n,
-                m.positions[n as usize],
-                [u.x as f64, u.y as f64, u.z as f64],
-            );
+            points.push(n, m.positions[n as usize], [u.x as f64, u.y as f64, u.z as f64]);
         }
     }
     let prior = Kelvinlet::new(m.config.prior);
@@ -120,9 +116,7 @@ async fn get_mesh_and_list_models_describe_what_is_served() {
     assert_eq!(mesh.content_hash, m.content_hash);
 
     let unknown = client
-        .get_mesh(pb::GetMeshRequest {
-            mesh: "kidney".into(),
-        })
+        .get_mesh(pb::GetMeshRequest { mesh: "kidney".into() })
         .await
         .unwrap_err();
     assert_eq!(unknown.code(), Code::NotFound);
@@ -133,10 +127,7 @@ async fn get_mesh_and_list_models_describe_what_is_served() {
         .unwrap()
         .into_inner()
         .models;
-    let kelvinlet = models
-        .iter()
-        .find(|m| m.name == "kelvinlet")
-        .expect("kelvinlet listed");
+    let kelvinlet = models.iter().find(|m| m.name == "kelvinlet").expect("kelvinlet listed");
     assert_eq!(kelvinlet.kind, pb::ModelKind::Prior as i32);
     assert_eq!(kelvinlet.mesh, m.content_hash);
     assert_eq!(kelvinlet.metadata["epsilon_m"], "0.05");
@@ -148,11 +139,7 @@ async fn node_selections_return_rows_of_the_full_field() {
     let server = TestServer::default().await;
     let mut client = server.client().await;
     let grasps = two_graspers(&server);
-    let full = client
-        .predict(request(grasps.clone()))
-        .await
-        .unwrap()
-        .into_inner();
+    let full = client.predict(request(grasps.clone())).await.unwrap().into_inner();
     let full = f32s(&full.displacements);
     let surface = client
         .predict(PredictRequest {
@@ -220,10 +207,7 @@ async fn a_point_grasp_snaps_to_the_surface() {
         .iter()
         .filter(|&&s| {
             let q = m.positions[s as usize];
-            (0..3)
-                .map(|k| (q[k] - outside[k] as f64).powi(2))
-                .sum::<f64>()
-                <= (radius as f64).powi(2)
+            (0..3).map(|k| (q[k] - outside[k] as f64).powi(2)).sum::<f64>() <= (radius as f64).powi(2)
         })
         .count();
     let response = client
@@ -270,11 +254,7 @@ async fn streams_answer_every_message_in_order() {
         (1000..1050).collect::<Vec<_>>()
     );
     // Each answer is the unary answer to the same message.
-    let unary = client
-        .predict(messages[17].clone())
-        .await
-        .unwrap()
-        .into_inner();
+    let unary = client.predict(messages[17].clone()).await.unwrap().into_inner();
     assert_eq!(seen[17].displacements, unary.displacements);
     server.stop().await;
 }
@@ -291,10 +271,7 @@ async fn a_refused_message_in_a_stream_is_answered_and_the_stream_goes_on() {
             ..good.clone()
         },
         PredictRequest { sequence: 2, ..bad },
-        PredictRequest {
-            sequence: 3,
-            ..good
-        },
+        PredictRequest { sequence: 3, ..good },
     ];
     let mut responses = client
         .predict_stream(tokio_stream::iter(messages))
@@ -370,22 +347,14 @@ async fn bad_requests_are_refused_with_the_right_code_and_a_clear_message() {
     .await;
     let m = server.engine.mesh().clone();
     let surface = m.surface_nodes[0];
-    let inside = (0..m.node_count() as u32)
-        .find(|&n| !m.is_surface[n as usize])
-        .unwrap();
+    let inside = (0..m.node_count() as u32).find(|&n| !m.is_surface[n as usize]).unwrap();
     let ok = |u: [f32; 3]| node_grasp(&[surface], u);
 
     let unknown_model = PredictRequest {
         model: "pointnet".into(),
         ..request(vec![ok([0.0, 0.01, 0.0])])
     };
-    refused(
-        &server,
-        unknown_model,
-        Code::NotFound,
-        "unknown model \"pointnet\"",
-    )
-    .await;
+    refused(&server, unknown_model, Code::NotFound, "unknown model \"pointnet\"").await;
     let unknown_mesh = PredictRequest {
         mesh: "kidney".into(),
         ..request(vec![ok([0.0, 0.01, 0.0])])
@@ -426,13 +395,7 @@ async fn bad_requests_are_refused_with_the_right_code_and_a_clear_message() {
         displacement: vec3([0.0, 0.01, 0.0]),
         ..Default::default()
     };
-    refused(
-        &server,
-        request(vec![nan_point]),
-        Code::InvalidArgument,
-        "not a finite",
-    )
-    .await;
+    refused(&server, request(vec![nan_point]), Code::InvalidArgument, "not a finite").await;
     refused(
         &server,
         request(vec![ok([0.0, 0.25, 0.0])]),

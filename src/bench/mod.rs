@@ -86,8 +86,7 @@ struct Recorder {
 
 /// 1 µs to 100 s at 3 significant digits.
 fn histogram() -> Result<Histogram<u64>, BenchError> {
-    Histogram::new_with_bounds(1, 100_000_000, 3)
-        .map_err(|e| BenchError::Config(format!("histogram: {e}")))
+    Histogram::new_with_bounds(1, 100_000_000, 3).map_err(|e| BenchError::Config(format!("histogram: {e}")))
 }
 
 impl Recorder {
@@ -139,12 +138,7 @@ impl Recorder {
         let (p50_us, p99_us) = self
             .latency
             .lock()
-            .map(|h| {
-                (
-                    h.value_at_quantile(0.5) as f64,
-                    h.value_at_quantile(0.99) as f64,
-                )
-            })
+            .map(|h| (h.value_at_quantile(0.5) as f64, h.value_at_quantile(0.99) as f64))
             .unwrap_or_default();
         Progress {
             elapsed: start.elapsed(),
@@ -170,7 +164,8 @@ fn code_name(code: tonic::Code) -> String {
     name
 }
 
-async fn connect(target: &str) -> Result<DeformationClient<Channel>, BenchError> {
+/// A client tuned for full-field answers (large flow-control windows, no Nagle).
+pub async fn connect(target: &str) -> Result<DeformationClient<Channel>, BenchError> {
     let error = |source| BenchError::Connect {
         target: target.to_owned(),
         source,
@@ -187,10 +182,7 @@ async fn connect(target: &str) -> Result<DeformationClient<Channel>, BenchError>
 
 /// Runs one load test; `progress` is called about four times a second.
 pub async fn run(config: &BenchConfig, progress: impl Fn(Progress)) -> Result<Report, BenchError> {
-    if config.concurrency == 0
-        || config.rate.is_some_and(|r| r.is_nan() || r <= 0.0)
-        || config.distinct_requests == 0
-    {
+    if config.concurrency == 0 || config.rate.is_some_and(|r| r.is_nan() || r <= 0.0) || config.distinct_requests == 0 {
         return Err(BenchError::Config(
             "concurrency, rate and distinct requests must be positive".into(),
         ));
@@ -268,11 +260,7 @@ pub async fn run(config: &BenchConfig, progress: impl Fn(Progress)) -> Result<Re
         throughput_rps: requests as f64 / config.duration.as_secs_f64(),
         latency_us: Percentiles::of(&latency),
         server_us: Percentiles::of(&server),
-        errors: recorder
-            .errors
-            .lock()
-            .map(|e| e.clone())
-            .unwrap_or_default(),
+        errors: recorder.errors.lock().map(|e| e.clone()).unwrap_or_default(),
     })
 }
 
@@ -298,12 +286,7 @@ fn request(pool: &[PredictRequest], k: u64) -> PredictRequest {
 ///
 /// tokio's timers tick in whole milliseconds, which would add up to 1 ms of the load generator's own
 /// lateness to every open-loop latency; a thread sleeping with `nanosleep` is late by tens of µs.
-fn pace(
-    rate: f64,
-    start: Instant,
-    end: Instant,
-    workers: Vec<tokio::sync::mpsc::UnboundedSender<(u64, Instant)>>,
-) {
+fn pace(rate: f64, start: Instant, end: Instant, workers: Vec<tokio::sync::mpsc::UnboundedSender<(u64, Instant)>>) {
     let (start, end) = (start.into_std(), end.into_std());
     for k in 0u64.. {
         let due = start + Duration::from_secs_f64(k as f64 / rate);

@@ -56,9 +56,9 @@ impl Report {
     pub fn table(&self) -> String {
         let l = &self.latency_us;
         let s = &self.server_us;
-        let rate = self.rate_rps.map_or("max (closed loop)".to_owned(), |r| {
-            format!("{r:.0}/s (open loop)")
-        });
+        let rate = self
+            .rate_rps
+            .map_or("max (closed loop)".to_owned(), |r| format!("{r:.0}/s (open loop)"));
         let errors = if self.errors.is_empty() {
             "none".to_owned()
         } else {

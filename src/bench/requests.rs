@@ -20,20 +20,13 @@ pub enum RequestsError {
 }
 
 /// A sampler for the mesh the server at the other end of `client` serves.
-pub async fn sampler_for(
-    client: &mut DeformationClient<Channel>,
-) -> Result<GraspSampler, RequestsError> {
-    let mesh = client
-        .get_mesh(GetMeshRequest::default())
-        .await?
-        .into_inner();
+pub async fn sampler_for(client: &mut DeformationClient<Channel>) -> Result<GraspSampler, RequestsError> {
+    let mesh = client.get_mesh(GetMeshRequest::default()).await?.into_inner();
     let positions: Vec<[f64; 3]> = mesh
         .positions
         .chunks_exact(12)
         .map(|c| {
-            std::array::from_fn(|k| {
-                f32::from_le_bytes([c[4 * k], c[4 * k + 1], c[4 * k + 2], c[4 * k + 3]]) as f64
-            })
+            std::array::from_fn(|k| f32::from_le_bytes([c[4 * k], c[4 * k + 1], c[4 * k + 2], c[4 * k + 3]]) as f64)
         })
         .collect();
     if positions.len() != mesh.node_count as usize {
@@ -62,16 +55,9 @@ pub async fn sampler_for(
             .collect(),
     };
     let sets = mesh.node_sets;
-    Ok(GraspSampler::new(
-        &positions,
-        &mesh.surface_nodes,
-        &sampling,
-        |name| {
-            sets.iter()
-                .find(|s| s.name == name)
-                .map(|s| s.nodes.clone())
-        },
-    )?)
+    Ok(GraspSampler::new(&positions, &mesh.surface_nodes, &sampling, |name| {
+        sets.iter().find(|s| s.name == name).map(|s| s.nodes.clone())
+    })?)
 }
 
 /// `count` requests for `model`, samples `0..count` of the stream `seed`.

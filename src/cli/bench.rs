@@ -58,9 +58,7 @@ fn parse_rate(text: &str) -> Result<Rate, String> {
     }
     match text.parse::<f64>() {
         Ok(r) if r > 0.0 && r.is_finite() => Ok(Rate(Some(r))),
-        _ => Err(format!(
-            "{text:?} is not a positive rate in requests/s or \"max\""
-        )),
+        _ => Err(format!("{text:?} is not a positive rate in requests/s or \"max\"")),
     }
 }
 
@@ -76,9 +74,7 @@ fn parse_duration(text: &str) -> Result<Duration, String> {
     };
     match number.trim().parse::<f64>() {
         Ok(v) if v >= 0.0 && v.is_finite() => Ok(Duration::from_secs_f64(v * scale)),
-        _ => Err(format!(
-            "{text:?} is not a duration such as 10s, 500ms or 2m"
-        )),
+        _ => Err(format!("{text:?} is not a duration such as 10s, 500ms or 2m")),
     }
 }
 
@@ -123,8 +119,7 @@ pub fn run(args: BenchArgs) -> anyhow::Result<()> {
     println!("{}", report.table());
     if let Some(path) = args.output {
         let json = serde_json::to_string_pretty(&report)?;
-        std::fs::write(&path, json + "\n")
-            .with_context(|| format!("cannot write {}", path.display()))?;
+        std::fs::write(&path, json + "\n").with_context(|| format!("cannot write {}", path.display()))?;
         println!("report      {}", path.display());
     }
     Ok(())

@@ -18,11 +18,7 @@ pub fn print(out: &mut impl Write, mesh: &TetMesh) -> std::io::Result<()> {
         mesh.surface_nodes.len()
     )?;
     writeln!(out, "tetrahedra  {}", mesh.tets.len())?;
-    writeln!(
-        out,
-        "surface     {} triangles, closed and manifold",
-        mesh.surface.len()
-    )?;
+    writeln!(out, "surface     {} triangles, closed and manifold", mesh.surface.len())?;
     writeln!(
         out,
         "bounds      x [{:.1}, {:.1}]  y [{:.1}, {:.1}]  z [{:.1}, {:.1}] mm  (size {:.0} × {:.0} × {:.0} mm)",

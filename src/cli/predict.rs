@@ -24,8 +24,7 @@ struct GraspJson {
 }
 
 pub fn read_grasps(path: &Path) -> anyhow::Result<Vec<Grasp>> {
-    let text =
-        std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let text = std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
     let file: GraspFile = serde_json::from_str(&text).with_context(|| {
         format!(
             "{}: expected {{\"grasps\": [{{\"nodes\": [...], \"displacement\": [dx, dy, dz]}}, \
@@ -45,12 +44,7 @@ pub fn read_grasps(path: &Path) -> anyhow::Result<Vec<Grasp>> {
         .collect())
 }
 
-pub fn run(
-    engine: &Engine,
-    model: &str,
-    grasps: Vec<Grasp>,
-    surface_only: bool,
-) -> anyhow::Result<Prediction> {
+pub fn run(engine: &Engine, model: &str, grasps: Vec<Grasp>, surface_only: bool) -> anyhow::Result<Prediction> {
     let request = Request {
         model: model.to_owned(),
         grasps,
@@ -69,8 +63,7 @@ pub fn write_npy(path: &Path, displacements: &[f32]) -> anyhow::Result<()> {
     if !displacements.len().is_multiple_of(3) {
         bail!("displacements are not (n, 3)");
     }
-    let file =
-        std::fs::File::create(path).with_context(|| format!("cannot create {}", path.display()))?;
+    let file = std::fs::File::create(path).with_context(|| format!("cannot create {}", path.display()))?;
     use npyz::WriterBuilder;
     let mut writer = npyz::WriteOptions::<f32>::new()
         .default_dtype()

@@ -46,12 +46,7 @@ pub enum SamplingError {
 impl GraspSampler {
     pub fn from_mesh(mesh: &TetMesh) -> Result<Self, SamplingError> {
         let node_sets = |name: &str| mesh.node_sets.get(name).cloned();
-        Self::new(
-            &mesh.positions,
-            &mesh.surface_nodes,
-            &mesh.config.sampling,
-            node_sets,
-        )
+        Self::new(&mesh.positions, &mesh.surface_nodes, &mesh.config.sampling, node_sets)
     }
 
     /// From raw parts, e.g. what a server reports in GetMesh.
@@ -67,9 +62,8 @@ impl GraspSampler {
                 .filter(|n| !n.is_empty())
                 .ok_or_else(|| SamplingError::MissingRegion(region.node_set.clone()))?;
             let points: Vec<[f64; 3]> = nodes.iter().map(|&n| positions[n as usize]).collect();
-            let centre: [f64; 3] = std::array::from_fn(|k| {
-                points.iter().map(|p| p[k]).sum::<f64>() / points.len() as f64
-            });
+            let centre: [f64; 3] =
+                std::array::from_fn(|k| points.iter().map(|p| p[k]).sum::<f64>() / points.len() as f64);
             let d2: Vec<f64> = points
                 .iter()
                 .map(|p| (0..3).map(|k| (p[k] - centre[k]).powi(2)).sum())
@@ -101,12 +95,7 @@ impl GraspSampler {
 
     /// Sample `index` of the stream `seed`: `graspers` grasps in distinct regions, with the index of
     /// each grasp's region.
-    pub fn sample(
-        &self,
-        seed: u64,
-        index: u64,
-        graspers: usize,
-    ) -> Result<Vec<(usize, Grasp)>, SamplingError> {
+    pub fn sample(&self, seed: u64, index: u64, graspers: usize) -> Result<Vec<(usize, Grasp)>, SamplingError> {
         let positive = self.regions.iter().filter(|r| r.weight > 0.0).count();
         if graspers > positive {
             return Err(SamplingError::TooFewRegions(graspers));
@@ -119,10 +108,7 @@ impl GraspSampler {
             let r = pick(&mut rng, &weights);
             weights[r] = 0.0;
             // Two graspers cannot hold the same tissue: a node held by one is no neighbour of another.
-            let held: Vec<u32> = grasps
-                .iter()
-                .flat_map(|(_, g)| g.nodes.iter().copied())
-                .collect();
+            let held: Vec<u32> = grasps.iter().flat_map(|(_, g)| g.nodes.iter().copied()).collect();
             grasps.push((r, self.grasp_in(&mut rng, &self.regions[r], &held)));
         }
         Ok(grasps)
@@ -155,14 +141,12 @@ impl GraspSampler {
             .collect();
         let extra = extra.min(by_distance.len());
         if extra > 0 {
-            by_distance
-                .select_nth_unstable_by(extra - 1, |a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+            by_distance.select_nth_unstable_by(extra - 1, |a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
         }
         let mut nodes = vec![centre];
         nodes.extend(by_distance[..extra].iter().map(|&(_, n)| n));
-        let displacement = std::array::from_fn(|k| {
-            rng.random_range(self.displacement_min[k]..self.displacement_max[k])
-        });
+        let displacement =
+            std::array::from_fn(|k| rng.random_range(self.displacement_min[k]..self.displacement_max[k]));
         Grasp {
             nodes,
             displacement,
@@ -190,8 +174,7 @@ mod tests {
     use crate::mesh::{self, MeshSource};
 
     fn sampler() -> (TetMesh, GraspSampler) {
-        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("models/phantom-liver/liver-coarse.msh");
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("models/phantom-liver/liver-coarse.msh");
         let m = mesh::load(&MeshSource::File(path)).unwrap();
         let s = GraspSampler::from_mesh(&m).unwrap();
         (m, s)
@@ -208,20 +191,13 @@ mod tests {
     #[test]
     fn grasps_follow_the_papers_distribution() {
         let (m, s) = sampler();
-        let (lo, hi) = (
-            m.config.sampling.displacement_min,
-            m.config.sampling.displacement_max,
-        );
+        let (lo, hi) = (m.config.sampling.displacement_min, m.config.sampling.displacement_max);
         let mut region_counts = vec![0usize; s.regions().len()];
         for i in 0..2000 {
             let grasps = s.sample(1, i, 2).unwrap();
             assert_ne!(grasps[0].0, grasps[1].0, "two graspers in one region");
             assert!(
-                grasps[0]
-                    .1
-                    .nodes
-                    .iter()
-                    .all(|n| !grasps[1].1.nodes.contains(n)),
+                grasps[0].1.nodes.iter().all(|n| !grasps[1].1.nodes.contains(n)),
                 "shared node"
             );
             for (r, g) in &grasps {

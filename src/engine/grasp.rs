@@ -27,9 +27,7 @@ pub fn resolve(
 ) -> Result<(), EngineError> {
     out.clear();
     if grasps.is_empty() {
-        return Err(EngineError::invalid(
-            "the request has no grasps: give at least one",
-        ));
+        return Err(EngineError::invalid("the request has no grasps: give at least one"));
     }
     for (g, grasp) in grasps.iter().enumerate() {
         let u = grasp.displacement;
@@ -64,10 +62,7 @@ pub fn resolve(
                 }
             }
             (true, Some(point)) => {
-                if point.iter().any(|v| !v.is_finite())
-                    || !grasp.radius.is_finite()
-                    || grasp.radius < 0.0
-                {
+                if point.iter().any(|v| !v.is_finite()) || !grasp.radius.is_finite() || grasp.radius < 0.0 {
                     return Err(EngineError::invalid(format!(
                         "grasps[{g}] has a point {point:?} or radius {} that is not a finite, non-negative \
                          distance",

@@ -9,9 +9,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 pub use grasp::Grasp;
-pub use model::{
-    DeformationModel, KelvinletModel, ModelError, ModelInfo, ModelKind, StageTiming, Target,
-};
+pub use model::{DeformationModel, KelvinletModel, ModelError, ModelInfo, ModelKind, StageTiming, Target};
 
 use crate::mesh::TetMesh;
 use crate::prior::{InteractionPoints, NodeCloud, Workspace};
@@ -115,11 +113,7 @@ impl Engine {
     /// An engine serving `mesh` with the Kelvinlet prior.
     pub fn new(mesh: Arc<TetMesh>, limits: Limits) -> Self {
         let all_nodes = NodeCloud::new(mesh.positions.iter().copied());
-        let surface_nodes = NodeCloud::new(
-            mesh.surface_nodes
-                .iter()
-                .map(|&n| mesh.positions[n as usize]),
-        );
+        let surface_nodes = NodeCloud::new(mesh.surface_nodes.iter().map(|&n| mesh.positions[n as usize]));
         let kelvinlet: Arc<dyn DeformationModel> = Arc::new(KelvinletModel::new(&mesh));
         Self {
             models: BTreeMap::from([(KelvinletModel::NAME.to_owned(), kelvinlet)]),
@@ -185,12 +179,7 @@ impl Engine {
         scratch: &mut Scratch,
         start: Instant,
     ) -> Result<Prediction, EngineError> {
-        grasp::resolve(
-            &self.mesh,
-            &self.limits,
-            &request.grasps,
-            &mut scratch.points,
-        )?;
+        grasp::resolve(&self.mesh, &self.limits, &request.grasps, &mut scratch.points)?;
         let n = self.mesh.node_count();
         let listed;
         let target = match &request.selection {

@@ -80,8 +80,7 @@ impl KelvinletModel {
             ("lambda".to_owned(), p.lambda.to_string()),
             (
                 "description".to_owned(),
-                "rescaled regularized Kelvinlet (DESIGN.md §3), closed-form multi-point solve"
-                    .to_owned(),
+                "rescaled regularized Kelvinlet (DESIGN.md §3), closed-form multi-point solve".to_owned(),
             ),
         ]);
         Self {
@@ -112,8 +111,7 @@ impl DeformationModel for KelvinletModel {
     ) -> Result<(), ModelError> {
         let start = std::time::Instant::now();
         self.prior.solve(points, workspace)?;
-        self.prior
-            .evaluate(&workspace.coefficients, target.cloud, out);
+        self.prior.evaluate(&workspace.coefficients, target.cloud, out);
         timing.prior_us = start.elapsed().as_secs_f32() * 1e6;
         Ok(())
     }

@@ -77,12 +77,7 @@ impl MeshConfig {
     /// Node sets every mesh must carry: `fixed` and the grasp regions the sampler draws from.
     pub fn required_node_sets(&self) -> Vec<&str> {
         std::iter::once("fixed")
-            .chain(
-                self.sampling
-                    .grasp_regions
-                    .iter()
-                    .map(|r| r.node_set.as_str()),
-            )
+            .chain(self.sampling.grasp_regions.iter().map(|r| r.node_set.as_str()))
             .collect()
     }
 
@@ -163,15 +158,11 @@ impl RawConfig {
             )));
         }
         if !(p.epsilon > 0.0 && p.lambda >= 0.0) {
-            return Err(invalid(
-                "prior.epsilon_m must be > 0 and prior.lambda >= 0".into(),
-            ));
+            return Err(invalid("prior.epsilon_m must be > 0 and prior.lambda >= 0".into()));
         }
         let mut materials = BTreeMap::new();
         for (name, m) in self.regions {
-            let positive = [m.shear_modulus_kpa, m.c10_kpa, m.c01_kpa]
-                .iter()
-                .all(|v| *v > 0.0);
+            let positive = [m.shear_modulus_kpa, m.c10_kpa, m.c01_kpa].iter().all(|v| *v > 0.0);
             if !(positive && m.poisson_ratio > -1.0 && m.poisson_ratio < 0.5) {
                 return Err(invalid(format!(
                     "regions.{name}: moduli must be positive and poisson_ratio in (-1, 0.5)"
@@ -189,15 +180,9 @@ impl RawConfig {
         }
         let s = self.sampling;
         if s.neighbours_min > s.neighbours_max {
-            return Err(invalid(
-                "sampling.neighbours_min exceeds neighbours_max".into(),
-            ));
+            return Err(invalid("sampling.neighbours_min exceeds neighbours_max".into()));
         }
-        if s.grasp_regions.is_empty()
-            || s.grasp_regions
-                .iter()
-                .any(|r| r.weight.is_nan() || r.weight < 0.0)
-        {
+        if s.grasp_regions.is_empty() || s.grasp_regions.iter().any(|r| r.weight.is_nan() || r.weight < 0.0) {
             return Err(invalid(
                 "sampling.grasp_regions must list regions with non-negative weights".into(),
             ));

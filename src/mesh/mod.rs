@@ -64,9 +64,7 @@ pub enum MeshError {
         name: String,
         available: String,
     },
-    #[error(
-        "{path}: the boundary surface is open: {edges} edges belong to one triangle only, e.g. edge {example}"
-    )]
+    #[error("{path}: the boundary surface is open: {edges} edges belong to one triangle only, e.g. edge {example}")]
     OpenSurface {
         path: String,
         edges: usize,
@@ -74,9 +72,7 @@ pub enum MeshError {
     },
     #[error("{path}: the mesh is not manifold: {what}")]
     NonManifold { path: String, what: String },
-    #[error(
-        "{path}: node set {name:?} has {count} nodes off the boundary surface, e.g. node {example}"
-    )]
+    #[error("{path}: node set {name:?} has {count} nodes off the boundary surface, e.g. node {example}")]
     NodeSetOffSurface {
         path: String,
         name: String,
@@ -162,12 +158,7 @@ impl TetMesh {
     /// Builds and validates a mesh from MSH bytes and its configuration.
     pub fn from_msh(bytes: &[u8], origin: &str, config: MeshConfig) -> Result<Self, MeshError> {
         let file = msh::parse(bytes, origin)?;
-        let index: HashMap<u64, u32> = file
-            .node_tags
-            .iter()
-            .enumerate()
-            .map(|(i, &t)| (t, i as u32))
-            .collect();
+        let index: HashMap<u64, u32> = file.node_tags.iter().enumerate().map(|(i, &t)| (t, i as u32)).collect();
         let resolve = |tag: u64, element: u64| {
             index.get(&tag).copied().ok_or_else(|| MeshError::Parse {
                 path: origin.to_owned(),
@@ -277,11 +268,7 @@ fn volume_elements(
         let region = match regions.iter().position(|r| r.name == name) {
             Some(i) => i,
             None => {
-                regions.push(Region {
-                    name,
-                    id,
-                    volume: 0.0,
-                });
+                regions.push(Region { name, id, volume: 0.0 });
                 regions.len() - 1
             }
         } as u16;
@@ -320,20 +307,11 @@ fn volume_region(file: &msh::MshFile, entity: i32) -> (String, i32) {
         .get(&(3, entity))
         .into_iter()
         .flatten()
-        .find_map(|&p| {
-            file.physical_names
-                .get(&(3, p))
-                .map(|name| (name.clone(), p))
-        })
+        .find_map(|&p| file.physical_names.get(&(3, p)).map(|name| (name.clone(), p)))
         .unwrap_or_else(|| (format!("volume_{entity}"), -entity))
 }
 
-fn check_volumes(
-    tets: &[[u32; 4]],
-    tags: &[u64],
-    positions: &[Vec3],
-    origin: &str,
-) -> Result<Vec<f64>, MeshError> {
+fn check_volumes(tets: &[[u32; 4]], tags: &[u64], positions: &[Vec3], origin: &str) -> Result<Vec<f64>, MeshError> {
     let volumes: Vec<f64> = tets
         .iter()
         .map(|t| tet_volume(t.map(|n| positions[n as usize])))
@@ -399,11 +377,7 @@ fn check_distinct_positions(file: &msh::MshFile, origin: &str) -> Result<(), Mes
     }
 }
 
-fn check_all_nodes_used(
-    tets: &[[u32; 4]],
-    node_tags: &[u64],
-    origin: &str,
-) -> Result<(), MeshError> {
+fn check_all_nodes_used(tets: &[[u32; 4]], node_tags: &[u64], origin: &str) -> Result<(), MeshError> {
     let mut used = vec![false; node_tags.len()];
     for t in tets {
         for &n in t {
@@ -433,10 +407,7 @@ fn node_sets(
 ) -> Result<BTreeMap<String, Vec<u32>>, MeshError> {
     let mut sets: BTreeMap<String, Vec<u32>> = BTreeMap::new();
     for block in file.element_blocks.iter().filter(|b| b.entity_dim < 3) {
-        let Some(physicals) = file
-            .entity_physicals
-            .get(&(block.entity_dim, block.entity_tag))
-        else {
+        let Some(physicals) = file.entity_physicals.get(&(block.entity_dim, block.entity_tag)) else {
             continue;
         };
         for p in physicals {
@@ -470,23 +441,19 @@ fn check_boundary_sets(
     let required = config.required_node_sets();
     let mut owner: HashMap<u32, &str> = HashMap::new();
     for name in required {
-        let nodes =
-            sets.get(name)
-                .filter(|s| !s.is_empty())
-                .ok_or_else(|| MeshError::MissingNodeSet {
-                    path: origin.to_owned(),
-                    name: name.to_owned(),
-                    available: if sets.is_empty() {
-                        "no node sets".to_owned()
-                    } else {
-                        sets.keys().cloned().collect::<Vec<_>>().join(", ")
-                    },
-                })?;
-        let off: Vec<u32> = nodes
-            .iter()
-            .copied()
-            .filter(|&n| !is_surface[n as usize])
-            .collect();
+        let nodes = sets
+            .get(name)
+            .filter(|s| !s.is_empty())
+            .ok_or_else(|| MeshError::MissingNodeSet {
+                path: origin.to_owned(),
+                name: name.to_owned(),
+                available: if sets.is_empty() {
+                    "no node sets".to_owned()
+                } else {
+                    sets.keys().cloned().collect::<Vec<_>>().join(", ")
+                },
+            })?;
+        let off: Vec<u32> = nodes.iter().copied().filter(|&n| !is_surface[n as usize]).collect();
         if let Some(&first) = off.first() {
             return Err(MeshError::NodeSetOffSurface {
                 path: origin.to_owned(),
@@ -498,10 +465,7 @@ fn check_boundary_sets(
         for &n in nodes {
             if let Some(other) = owner.insert(n, name) {
                 let theirs = &sets[other];
-                let count = nodes
-                    .iter()
-                    .filter(|m| theirs.binary_search(m).is_ok())
-                    .count();
+                let count = nodes.iter().filter(|m| theirs.binary_search(m).is_ok()).count();
                 return Err(MeshError::NodeSetsOverlap {
                     path: origin.to_owned(),
                     a: other.to_owned(),

@@ -212,9 +212,7 @@ impl Cursor<'_> {
             )));
         }
         if data_size != "8" {
-            return Err(self.error(format!(
-                "data size {data_size} is not supported (expected 8)"
-            )));
+            return Err(self.error(format!("data size {data_size} is not supported (expected 8)")));
         }
         match file_type {
             "0" => Ok(()),
@@ -283,9 +281,7 @@ impl Cursor<'_> {
         let n = self.size(what)?;
         let remaining = (self.data.len() - self.pos) as u64;
         if n > remaining {
-            return Err(self.error(format!(
-                "{what} = {n} exceeds what the rest of the file can hold"
-            )));
+            return Err(self.error(format!("{what} = {n} exceeds what the rest of the file can hold")));
         }
         Ok(n as usize)
     }
@@ -382,11 +378,7 @@ impl Cursor<'_> {
             for _ in 0..count {
                 file.node_tags.push(self.size("a node tag")?);
             }
-            let extra = if parametric {
-                entity_dim.clamp(0, 3) as usize
-            } else {
-                0
-            };
+            let extra = if parametric { entity_dim.clamp(0, 3) as usize } else { 0 };
             for _ in 0..count {
                 let x = self.float("a node x coordinate")?;
                 let y = self.float("a node y coordinate")?;

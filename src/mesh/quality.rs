@@ -63,10 +63,7 @@ pub fn dihedral_angles_deg(p: [Vec3; 4]) -> [f64; 6] {
 pub fn aspect_ratio(p: [Vec3; 4]) -> f64 {
     let volume = tet_volume(p).abs();
     let area = |a: Vec3, b: Vec3, c: Vec3| norm(cross(sub(b, a), sub(c, a))) / 2.0;
-    let surface = area(p[1], p[2], p[3])
-        + area(p[0], p[3], p[2])
-        + area(p[0], p[1], p[3])
-        + area(p[0], p[2], p[1]);
+    let surface = area(p[1], p[2], p[3]) + area(p[0], p[3], p[2]) + area(p[0], p[1], p[3]) + area(p[0], p[2], p[1]);
     let inradius = 3.0 * volume / surface;
     // Circumradius: |α|/(12V) with α the standard product-of-opposite-edges expression.
     let d = |i: usize, j: usize| norm(sub(p[i], p[j]));
@@ -82,12 +79,7 @@ mod tests {
 
     fn regular() -> [Vec3; 4] {
         let s = 1.0 / 2f64.sqrt();
-        [
-            [1.0, 0.0, -s],
-            [-1.0, 0.0, -s],
-            [0.0, 1.0, s],
-            [0.0, -1.0, s],
-        ]
+        [[1.0, 0.0, -s], [-1.0, 0.0, -s], [0.0, 1.0, s], [0.0, -1.0, s]]
     }
 
     #[test]
@@ -106,10 +98,7 @@ mod tests {
     fn right_corner_tetrahedron_has_right_dihedrals_at_the_corner() {
         let p = [[0.0; 3], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
         let angles = dihedral_angles_deg(p);
-        assert_eq!(
-            angles.iter().filter(|a| (**a - 90.0).abs() < 1e-9).count(),
-            3
-        );
+        assert_eq!(angles.iter().filter(|a| (**a - 90.0).abs() < 1e-9).count(), 3);
         assert!(aspect_ratio(p) > 1.0);
     }
 }

@@ -37,11 +37,7 @@ pub const TET_FACES: [[usize; 3]; 4] = [[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 
 
 /// Boundary triangles (faces used by exactly one tetrahedron), oriented outward, in a deterministic
 /// order (by tetrahedron, then local face).
-pub fn boundary_triangles(
-    tets: &[[u32; 4]],
-    positions: &[Vec3],
-    origin: &str,
-) -> Result<Vec<[u32; 3]>, MeshError> {
+pub fn boundary_triangles(tets: &[[u32; 4]], positions: &[Vec3], origin: &str) -> Result<Vec<[u32; 3]>, MeshError> {
     let mut uses: HashMap<[u32; 3], u32> = HashMap::with_capacity(tets.len() * 2);
     for tet in tets {
         for face in TET_FACES {
@@ -79,11 +75,7 @@ fn sorted_face(tet: &[u32; 4], face: [usize; 3]) -> [u32; 3] {
 
 /// Checks that the surface is closed and manifold: every edge is used by exactly two triangles, in
 /// opposite directions (which also means the orientation is consistent).
-pub fn check_closed_manifold(
-    triangles: &[[u32; 3]],
-    positions: &[Vec3],
-    origin: &str,
-) -> Result<(), MeshError> {
+pub fn check_closed_manifold(triangles: &[[u32; 3]], positions: &[Vec3], origin: &str) -> Result<(), MeshError> {
     let mut directed: HashMap<(u32, u32), u32> = HashMap::with_capacity(triangles.len() * 3);
     for t in triangles {
         for k in 0..3 {
@@ -119,18 +111,12 @@ pub fn check_closed_manifold(
 
 /// Checks that the surface is a manifold at every vertex: the triangles around a vertex form one fan
 /// (two parts of the organ touching at a single node would make two).
-pub fn check_vertex_manifold(
-    triangles: &[[u32; 3]],
-    positions: &[Vec3],
-    origin: &str,
-) -> Result<(), MeshError> {
+pub fn check_vertex_manifold(triangles: &[[u32; 3]], positions: &[Vec3], origin: &str) -> Result<(), MeshError> {
     // For each vertex, the link edge (from -> to) of every triangle around it, counter-clockwise.
     let mut link: HashMap<u32, Vec<(u32, u32)>> = HashMap::new();
     for t in triangles {
         for k in 0..3 {
-            link.entry(t[k])
-                .or_default()
-                .push((t[(k + 1) % 3], t[(k + 2) % 3]));
+            link.entry(t[k]).or_default().push((t[(k + 1) % 3], t[(k + 2) % 3]));
         }
     }
     let mut vertices: Vec<_> = link.into_iter().collect();

@@ -73,8 +73,7 @@ const REQUIRED: [Channel; 3] = [Channel::Position, Channel::Displacement, Channe
 
 impl Manifest {
     pub fn parse(text: &str, origin: &str) -> Result<Self, ModelLoadError> {
-        let manifest: Manifest =
-            toml::from_str(text).map_err(|e| ModelLoadError::new(origin, e.to_string()))?;
+        let manifest: Manifest = toml::from_str(text).map_err(|e| ModelLoadError::new(origin, e.to_string()))?;
         let inputs = &manifest.model.inputs;
         let prior_only_last = matches!(&inputs[..], [a, b, c] | [a, b, c, Channel::Prior] if [*a, *b, *c] == REQUIRED);
         if !prior_only_last {

@@ -34,8 +34,8 @@ impl ModelLoadError {
 
 /// Model directories under `root`: every subdirectory holding a `manifest.toml`, sorted by name.
 pub fn model_dirs(root: &Path) -> Result<Vec<PathBuf>, ModelLoadError> {
-    let entries = std::fs::read_dir(root)
-        .map_err(|e| ModelLoadError::new(&root.display().to_string(), e.to_string()))?;
+    let entries =
+        std::fs::read_dir(root).map_err(|e| ModelLoadError::new(&root.display().to_string(), e.to_string()))?;
     let mut dirs: Vec<PathBuf> = entries
         .filter_map(Result::ok)
         .map(|e| e.path())
@@ -46,11 +46,7 @@ pub fn model_dirs(root: &Path) -> Result<Vec<PathBuf>, ModelLoadError> {
 }
 
 /// Loads every model under `root` for `mesh`; the first refusal stops the load with its reason.
-pub fn load_all(
-    root: &Path,
-    mesh: &TetMesh,
-    ort_dylib: Option<&Path>,
-) -> Result<Vec<OnnxModel>, ModelLoadError> {
+pub fn load_all(root: &Path, mesh: &TetMesh, ort_dylib: Option<&Path>) -> Result<Vec<OnnxModel>, ModelLoadError> {
     model_dirs(root)?
         .iter()
         .map(|dir| OnnxModel::load(dir, mesh, ort_dylib))

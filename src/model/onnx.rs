@@ -48,16 +48,11 @@ pub struct OnnxModel {
 
 impl OnnxModel {
     /// Loads `dir/model.onnx` under `dir/manifest.toml`, validates both against `mesh`, warms up.
-    pub fn load(
-        dir: &Path,
-        mesh: &TetMesh,
-        ort_dylib: Option<&Path>,
-    ) -> Result<Self, ModelLoadError> {
+    pub fn load(dir: &Path, mesh: &TetMesh, ort_dylib: Option<&Path>) -> Result<Self, ModelLoadError> {
         let origin = dir.display().to_string();
         let manifest_path = dir.join("manifest.toml");
-        let text = std::fs::read_to_string(&manifest_path).map_err(|e| {
-            ModelLoadError::new(&manifest_path.display().to_string(), e.to_string())
-        })?;
+        let text = std::fs::read_to_string(&manifest_path)
+            .map_err(|e| ModelLoadError::new(&manifest_path.display().to_string(), e.to_string()))?;
         let manifest = Manifest::parse(&text, &manifest_path.display().to_string())?;
         manifest.check_against(mesh, &origin)?;
         let onnx_path = dir.join("model.onnx");
@@ -79,12 +74,7 @@ impl OnnxModel {
                 )
             })?;
         let n = mesh.node_count();
-        check_signature(
-            &session,
-            manifest.channels(),
-            n,
-            &onnx_path.display().to_string(),
-        )?;
+        check_signature(&session, manifest.channels(), n, &onnx_path.display().to_string())?;
 
         let channels = manifest.channels();
         let mut template = vec![0.0f32; n * channels];
@@ -94,24 +84,12 @@ impl OnnxModel {
             }
         }
         let mut metadata: BTreeMap<String, String> = BTreeMap::new();
-        metadata.insert(
-            "mode".into(),
-            format!("{:?}", manifest.model.mode).to_lowercase(),
-        );
-        metadata.insert(
-            "inputs".into(),
-            format!("{:?}", manifest.model.inputs).to_lowercase(),
-        );
+        metadata.insert("mode".into(), format!("{:?}", manifest.model.mode).to_lowercase());
+        metadata.insert("inputs".into(), format!("{:?}", manifest.model.inputs).to_lowercase());
         metadata.insert("description".into(), manifest.model.description.clone());
-        for (section, values) in [
-            ("metrics", &manifest.metrics),
-            ("provenance", &manifest.provenance),
-        ] {
+        for (section, values) in [("metrics", &manifest.metrics), ("provenance", &manifest.provenance)] {
             for (k, v) in values {
-                metadata.insert(
-                    format!("{section}.{k}"),
-                    v.to_string().trim_matches('"').to_owned(),
-                );
+                metadata.insert(format!("{section}.{k}"), v.to_string().trim_matches('"').to_owned());
             }
         }
         let model = OnnxModel {
@@ -185,11 +163,7 @@ impl OnnxModel {
             buffers.dirty.push(n);
         }
         if self.reads_prior {
-            for (row, u) in buffers
-                .features
-                .chunks_exact_mut(c)
-                .zip(buffers.prior.chunks_exact(3))
-            {
+            for (row, u) in buffers.features.chunks_exact_mut(c).zip(buffers.prior.chunks_exact(3)) {
                 row[7..10].copy_from_slice(u);
             }
         }
@@ -201,12 +175,12 @@ impl OnnxModel {
         features: &[f32],
         consume: impl FnOnce(&[f32]) -> Result<(), ModelError>,
     ) -> Result<(), ModelError> {
-        let input =
-            TensorRef::from_array_view(([1usize, self.node_count, self.channels], features))
-                .map_err(|e| ModelError::Runtime(format!("cannot wrap the features: {e}")))?;
-        let mut session = self.session.lock().map_err(|_| {
-            ModelError::Runtime("the session was poisoned by an earlier panic".into())
-        })?;
+        let input = TensorRef::from_array_view(([1usize, self.node_count, self.channels], features))
+            .map_err(|e| ModelError::Runtime(format!("cannot wrap the features: {e}")))?;
+        let mut session = self
+            .session
+            .lock()
+            .map_err(|_| ModelError::Runtime("the session was poisoned by an earlier panic".into()))?;
         let outputs = session
             .run(ort::inputs![INPUT => input])
             .map_err(|e| ModelError::Runtime(e.to_string()))?;
@@ -229,22 +203,11 @@ fn threads() -> usize {
 
 /// The graph must take `features` [B, N, C] and give `displacement` [B, N, 3], f32, with N and B either
 /// fixed to the mesh's values (N, 1) or symbolic.
-fn check_signature(
-    session: &Session,
-    channels: usize,
-    n: usize,
-    origin: &str,
-) -> Result<(), ModelLoadError> {
+fn check_signature(session: &Session, channels: usize, n: usize, origin: &str) -> Result<(), ModelLoadError> {
     let describe = |outlets: &[Outlet]| {
         outlets
             .iter()
-            .map(|o| {
-                format!(
-                    "{} {:?}",
-                    o.name(),
-                    o.dtype().tensor_shape().map(|s| s.to_vec())
-                )
-            })
+            .map(|o| format!("{} {:?}", o.name(), o.dtype().tensor_shape().map(|s| s.to_vec())))
             .collect::<Vec<_>>()
             .join(", ")
     };
@@ -252,10 +215,7 @@ fn check_signature(
         let [outlet] = outlets else {
             return Err(ModelLoadError::new(
                 origin,
-                format!(
-                    "expected one {what} named {name:?}, found: {}",
-                    describe(outlets)
-                ),
+                format!("expected one {what} named {name:?}, found: {}", describe(outlets)),
             ));
         };
         if outlet.name() != name {
@@ -268,14 +228,10 @@ fn check_signature(
             ));
         }
         let ValueType::Tensor { ty, shape, .. } = outlet.dtype() else {
-            return Err(ModelLoadError::new(
-                origin,
-                format!("{what} {name:?} is not a tensor"),
-            ));
+            return Err(ModelLoadError::new(origin, format!("{what} {name:?} is not a tensor")));
         };
         let fits = |dim: i64, want: usize| dim < 0 || dim == want as i64;
-        let ok_shape =
-            shape.len() == 3 && fits(shape[0], 1) && fits(shape[1], n) && shape[2] == last as i64;
+        let ok_shape = shape.len() == 3 && fits(shape[0], 1) && fits(shape[1], n) && shape[2] == last as i64;
         if *ty != ort::value::TensorElementType::Float32 || !ok_shape {
             return Err(ModelLoadError::new(
                 origin,
@@ -325,11 +281,8 @@ impl OnnxModel {
             // The prior is an input: it must be ready, over every node, before the network runs.
             let start = Instant::now();
             self.prior.solve(points, &mut buffers.workspace)?;
-            self.prior.evaluate(
-                &buffers.workspace.coefficients,
-                &self.all_nodes,
-                &mut buffers.prior,
-            );
+            self.prior
+                .evaluate(&buffers.workspace.coefficients, &self.all_nodes, &mut buffers.prior);
             timing.prior_us = start.elapsed().as_secs_f32() * 1e6;
         }
         self.fill_features(points, buffers);
@@ -371,8 +324,7 @@ impl OnnxModel {
                     || {
                         let start = Instant::now();
                         let r = self.prior.solve(points, workspace).map(|()| {
-                            self.prior
-                                .evaluate(&workspace.coefficients, target.cloud, out);
+                            self.prior.evaluate(&workspace.coefficients, target.cloud, out);
                         });
                         prior_us = start.elapsed().as_secs_f32() * 1e6;
                         r

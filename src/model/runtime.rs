@@ -38,15 +38,13 @@ pub fn locate(explicit: Option<&Path>) -> Result<PathBuf, ModelLoadError> {
 pub fn environment(explicit: Option<&Path>) -> Result<&'static Environment, ModelLoadError> {
     let loaded = ENVIRONMENT.get_or_init(|| {
         let path = locate(explicit).map_err(|e| e.to_string())?;
-        let builder = ort::init_from(&path)
-            .map_err(|e| format!("cannot load ONNX Runtime from {}: {e}", path.display()))?;
+        let builder =
+            ort::init_from(&path).map_err(|e| format!("cannot load ONNX Runtime from {}: {e}", path.display()))?;
         builder
             .with_name("nak")
             .with_telemetry(false)
             .build()
             .map_err(|e| format!("cannot start ONNX Runtime from {}: {e}", path.display()))
     });
-    loaded
-        .as_ref()
-        .map_err(|e| ModelLoadError::runtime(e.clone()))
+    loaded.as_ref().map_err(|e| ModelLoadError::runtime(e.clone()))
 }

@@ -88,10 +88,7 @@ impl Kelvinlet {
             );
         };
         if cloud.len >= PARALLEL_MIN_NODES {
-            out.par_chunks_mut(3 * BLOCK)
-                .enumerate()
-                .with_min_len(8)
-                .for_each(run);
+            out.par_chunks_mut(3 * BLOCK).enumerate().with_min_len(8).for_each(run);
         } else {
             out.chunks_mut(3 * BLOCK).enumerate().for_each(run);
         }

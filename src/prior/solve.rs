@@ -84,19 +84,11 @@ impl Kelvinlet {
                 }
             }
         }
-        let gamma = DMatrix::from_vec_storage(VecStorage::new(
-            Dyn(n),
-            Dyn(n),
-            std::mem::take(&mut ws.gamma),
-        ));
+        let gamma = DMatrix::from_vec_storage(VecStorage::new(Dyn(n), Dyn(n), std::mem::take(&mut ws.gamma)));
         let u = DVectorView::from_slice(points.displacements.as_flattened(), n);
         ws.normal.clear();
         ws.normal.resize(n * n, 0.0);
-        let mut normal = DMatrix::from_vec_storage(VecStorage::new(
-            Dyn(n),
-            Dyn(n),
-            std::mem::take(&mut ws.normal),
-        ));
+        let mut normal = DMatrix::from_vec_storage(VecStorage::new(Dyn(n), Dyn(n), std::mem::take(&mut ws.normal)));
         // Γ is symmetric (Γ(r) = Γ(−r) and each block is symmetric), so ΓᵀΓ = ΓΓ, which nalgebra
         // computes with a blocked SIMD GEMM; its transposed product does not.
         gamma.mul_to(&gamma, &mut normal);
@@ -105,11 +97,7 @@ impl Kelvinlet {
         }
         ws.rhs.clear();
         ws.rhs.resize(n, 0.0);
-        let mut rhs = DVector::from_vec_storage(VecStorage::new(
-            Dyn(n),
-            nalgebra::U1,
-            std::mem::take(&mut ws.rhs),
-        ));
+        let mut rhs = DVector::from_vec_storage(VecStorage::new(Dyn(n), nalgebra::U1, std::mem::take(&mut ws.rhs)));
         gamma.tr_mul_to(&u, &mut rhs);
         ws.gamma = gamma.data.into();
         let Some(cholesky) = normal.cholesky() else {

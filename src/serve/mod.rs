@@ -18,9 +18,10 @@ pub use service::DeformationService;
 use crate::engine::{Engine, Limits};
 use crate::proto::v1::FILE_DESCRIPTOR_SET;
 use crate::proto::v1::deformation_server::DeformationServer;
+use crate::record::{Payload, RecordConfig, Recorder};
 
 /// Server settings, from flags or a TOML file (`nak serve --config serve.toml`).
-#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Deserialize, serde::Serialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ServeConfig {
     /// `--mesh`: a model directory or an .msh file; absent: the embedded phantom liver.
@@ -36,6 +37,13 @@ pub struct ServeConfig {
     pub max_interaction_points: usize,
     /// Largest request message accepted, in bytes; larger ones get RESOURCE_EXHAUSTED.
     pub max_message_bytes: usize,
+    /// Record every exchange to MCAP files in this directory.
+    pub record: Option<PathBuf>,
+    pub record_payload: Payload,
+    pub record_rotate_mb: u64,
+    pub record_rotate_minutes: u64,
+    pub record_queue: usize,
+    pub record_scene_hz: f64,
 }
 
 impl Default for ServeConfig {
@@ -49,6 +57,12 @@ impl Default for ServeConfig {
             max_displacement_mm: limits.max_displacement_m * 1e3,
             max_interaction_points: limits.max_interaction_points,
             max_message_bytes: 1 << 20,
+            record: None,
+            record_payload: Payload::Surface,
+            record_rotate_mb: 1024,
+            record_rotate_minutes: 60,
+            record_queue: 4096,
+            record_scene_hz: 30.0,
         }
     }
 }
@@ -59,6 +73,18 @@ impl ServeConfig {
     pub fn model_roots(&self) -> Vec<PathBuf> {
         let mesh_dir = self.mesh.iter().filter(|p| p.is_dir()).cloned();
         mesh_dir.chain(self.models.iter().cloned()).collect()
+    }
+
+    /// The recorder's settings, when recording.
+    pub fn recording(&self) -> Option<RecordConfig> {
+        self.record.as_ref().map(|dir| RecordConfig {
+            directory: dir.clone(),
+            payload: self.record_payload,
+            rotate_bytes: self.record_rotate_mb << 20,
+            rotate_after: std::time::Duration::from_secs(60 * self.record_rotate_minutes),
+            queue: self.record_queue,
+            scene_hz: self.record_scene_hz,
+        })
     }
 
     pub fn limits(&self) -> Limits {
@@ -82,6 +108,7 @@ pub async fn run(
     engine: Arc<Engine>,
     listener: TcpListener,
     max_message_bytes: usize,
+    recorder: Option<Arc<Recorder>>,
     shutdown: impl std::future::Future<Output = ()> + Send,
 ) -> Result<(), ServeError> {
     let (health_reporter, health_service) = tonic_health::server::health_reporter();
@@ -92,7 +119,10 @@ pub async fn run(
         .register_encoded_file_descriptor_set(FILE_DESCRIPTOR_SET)
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
         .build_v1()?;
-    let deformation = DeformationServer::new(DeformationService::new(engine.clone()))
+    if let Some(recorder) = &recorder {
+        tokio::spawn(report_drops(Arc::downgrade(recorder)));
+    }
+    let deformation = DeformationServer::new(DeformationService::new(engine.clone(), recorder))
         .max_decoding_message_size(max_message_bytes);
     info!(
         address = ?listener.local_addr().ok(),
@@ -115,20 +145,38 @@ pub async fn run(
     Ok(())
 }
 
+/// Logs, every ten seconds, exchanges the recorder had to drop since the last report.
+async fn report_drops(recorder: std::sync::Weak<Recorder>) {
+    let mut reported = 0;
+    let mut every = tokio::time::interval(std::time::Duration::from_secs(10));
+    loop {
+        every.tick().await;
+        let Some(recorder) = recorder.upgrade() else { return };
+        let dropped = recorder.dropped();
+        if dropped > reported {
+            tracing::warn!(
+                dropped = dropped - reported,
+                total = dropped,
+                "recorder queue full: exchanges not recorded"
+            );
+            reported = dropped;
+        }
+    }
+}
+
 /// Completes on SIGINT or SIGTERM.
 pub async fn shutdown_signal() {
     let interrupt = tokio::signal::ctrl_c();
     #[cfg(unix)]
     {
-        let mut terminate =
-            match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-                Ok(s) => s,
-                Err(e) => {
-                    tracing::warn!(error = %e, "cannot listen for SIGTERM; stop with SIGINT");
-                    let _ = interrupt.await;
-                    return;
-                }
-            };
+        let mut terminate = match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(s) => s,
+            Err(e) => {
+                tracing::warn!(error = %e, "cannot listen for SIGTERM; stop with SIGINT");
+                let _ = interrupt.await;
+                return;
+            }
+        };
         tokio::select! {
             _ = interrupt => info!("SIGINT: shutting down"),
             _ = terminate.recv() => info!("SIGTERM: shutting down"),

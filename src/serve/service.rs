@@ -2,6 +2,7 @@
 
 use std::pin::Pin;
 use std::sync::Arc;
+use std::time::{Instant, SystemTime};
 
 use tokio_stream::{Stream, StreamExt};
 use tonic::{Code, Request, Response, Status, Streaming};
@@ -12,14 +13,36 @@ use super::status_codes::TOO_LARGE;
 use crate::engine::Engine;
 use crate::proto::v1 as pb;
 use crate::proto::v1::deformation_server::Deformation;
+use crate::record::{Exchange, Recorder};
 
 pub struct DeformationService {
     engine: Arc<Engine>,
+    recorder: Option<Arc<Recorder>>,
+    started: Instant,
 }
 
 impl DeformationService {
-    pub fn new(engine: Arc<Engine>) -> Self {
-        Self { engine }
+    pub fn new(engine: Arc<Engine>, recorder: Option<Arc<Recorder>>) -> Self {
+        Self {
+            engine,
+            recorder,
+            started: Instant::now(),
+        }
+    }
+
+    /// Answers one request and hands the exchange to the recorder, if recording.
+    async fn predict_one(&self, message: pb::PredictRequest) -> Result<pb::PredictResponse, Status> {
+        let received = SystemTime::now();
+        let answer = self.answer(&message).await;
+        if let Some(recorder) = &self.recorder {
+            recorder.record(Exchange {
+                received,
+                answered: SystemTime::now(),
+                response: answer.clone().map_err(|s| (s.code() as i32, s.message().to_owned())),
+                request: message,
+            });
+        }
+        answer
     }
 
     /// Answers one request on the compute pool, leaving the async runtime's threads to network I/O.
@@ -28,11 +51,8 @@ impl DeformationService {
     /// parallel inside; running them inline would block the runtime's workers, stalling every other
     /// connection, and oversubscribe the cores with two pools. rayon's pool runs both the requests and
     /// the work inside them, with one thread per core.
-    async fn predict_one(
-        &self,
-        message: pb::PredictRequest,
-    ) -> Result<pb::PredictResponse, Status> {
-        let request = convert::request(&message)?;
+    async fn answer(&self, message: &pb::PredictRequest) -> Result<pb::PredictResponse, Status> {
+        let request = convert::request(message)?;
         let engine = self.engine.clone();
         let (tx, rx) = tokio::sync::oneshot::channel();
         rayon::spawn(move || {
@@ -58,10 +78,7 @@ type ResponseStream = Pin<Box<dyn Stream<Item = Result<pb::PredictResponse, Stat
 
 #[tonic::async_trait]
 impl Deformation for DeformationService {
-    async fn get_mesh(
-        &self,
-        request: Request<pb::GetMeshRequest>,
-    ) -> Result<Response<pb::Mesh>, Status> {
+    async fn get_mesh(&self, request: Request<pb::GetMeshRequest>) -> Result<Response<pb::Mesh>, Status> {
         let wanted = &request.get_ref().mesh;
         if !self.engine.serves_mesh(wanted) {
             return Err(Status::not_found(format!(
@@ -72,6 +89,14 @@ impl Deformation for DeformationService {
         Ok(Response::new(convert::mesh(self.engine.mesh())))
     }
 
+    async fn get_status(&self, _request: Request<pb::GetStatusRequest>) -> Result<Response<pb::ServerStatus>, Status> {
+        Ok(Response::new(pb::ServerStatus {
+            version: env!("CARGO_PKG_VERSION").to_owned(),
+            uptime_ms: self.started.elapsed().as_millis() as u64,
+            recorder: Some(self.recorder.as_ref().map_or_else(Default::default, |r| r.status())),
+        }))
+    }
+
     async fn list_models(
         &self,
         _request: Request<pb::ListModelsRequest>,
@@ -80,13 +105,8 @@ impl Deformation for DeformationService {
         Ok(Response::new(pb::ListModelsResponse { models }))
     }
 
-    async fn predict(
-        &self,
-        request: Request<pb::PredictRequest>,
-    ) -> Result<Response<pb::PredictResponse>, Status> {
-        self.predict_one(request.into_inner())
-            .await
-            .map(Response::new)
+    async fn predict(&self, request: Request<pb::PredictRequest>) -> Result<Response<pb::PredictResponse>, Status> {
+        self.predict_one(request.into_inner()).await.map(Response::new)
     }
 
     type PredictStreamStream = ResponseStream;
@@ -96,7 +116,11 @@ impl Deformation for DeformationService {
         request: Request<Streaming<pb::PredictRequest>>,
     ) -> Result<Response<Self::PredictStreamStream>, Status> {
         let mut incoming = request.into_inner();
-        let service = DeformationService::new(self.engine.clone());
+        let service = DeformationService {
+            engine: self.engine.clone(),
+            recorder: self.recorder.clone(),
+            started: self.started,
+        };
         // Requests are answered one at a time as they arrive, so answers keep their order. A refused
         // request is answered with `error` set; only a broken stream ends the call.
         let outgoing = async_stream(move |tx| async move {
@@ -104,16 +128,17 @@ impl Deformation for DeformationService {
                 let answer = match next {
                     Ok(message) => {
                         let sequence = message.sequence;
-                        Ok(service.predict_one(message).await.unwrap_or_else(|status| {
-                            pb::PredictResponse {
+                        Ok(service
+                            .predict_one(message)
+                            .await
+                            .unwrap_or_else(|status| pb::PredictResponse {
                                 sequence,
                                 error: Some(pb::StreamError {
                                     code: status.code() as i32,
                                     message: status.message().to_owned(),
                                 }),
                                 ..Default::default()
-                            }
-                        }))
+                            }))
                     }
                     Err(status) if status.message().contains(TOO_LARGE) => {
                         Err(Status::resource_exhausted(status.message().to_owned()))

@@ -17,9 +17,7 @@ pub fn layer<B>() -> MapResponseLayer<fn(Response<B>) -> Response<B>> {
 
 fn rewrite<B>(mut response: Response<B>) -> Response<B> {
     let headers = response.headers();
-    let out_of_range = headers
-        .get("grpc-status")
-        .is_some_and(|s| s == OUT_OF_RANGE);
+    let out_of_range = headers.get("grpc-status").is_some_and(|s| s == OUT_OF_RANGE);
     let too_large = headers
         .get("grpc-message")
         .and_then(|m| m.to_str().ok())

@@ -27,14 +27,7 @@ impl Fixture {
             }
         }
         let mut tets = Vec::new();
-        let perms = [
-            [0, 1, 2],
-            [0, 2, 1],
-            [1, 0, 2],
-            [1, 2, 0],
-            [2, 0, 1],
-            [2, 1, 0],
-        ];
+        let perms = [[0, 1, 2], [0, 2, 1], [1, 0, 2], [1, 2, 0], [2, 0, 1], [2, 1, 0]];
         for i in 0..n {
             for j in 0..n {
                 for k in 0..n {
@@ -71,8 +64,7 @@ impl Fixture {
         let p = tet.map(|i| self.nodes[i]);
         let d = |a: [f64; 3], b: [f64; 3]| [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
         let (a, b, c) = (d(p[1], p[0]), d(p[2], p[0]), d(p[3], p[0]));
-        (a[0] * (b[1] * c[2] - b[2] * c[1]) - a[1] * (b[0] * c[2] - b[2] * c[0])
-            + a[2] * (b[0] * c[1] - b[1] * c[0]))
+        (a[0] * (b[1] * c[2] - b[2] * c[1]) - a[1] * (b[0] * c[2] - b[2] * c[0]) + a[2] * (b[0] * c[1] - b[1] * c[0]))
             / 6.0
     }
 
@@ -93,8 +85,7 @@ impl Fixture {
                 .iter()
                 .map(|p| [p[0] + offset[0], p[1] + offset[1], p[2] + offset[2]]),
         );
-        self.tets
-            .extend(other.tets.iter().map(|t| t.map(|i| i + base)));
+        self.tets.extend(other.tets.iter().map(|t| t.map(|i| i + base)));
     }
 
     pub fn to_msh(&self) -> String {
@@ -130,23 +121,9 @@ impl Fixture {
         writeln!(w, "$EndNodes").unwrap();
         let total = self.tets.len() + points.len();
         let blocks = 1 + points.len();
-        writeln!(
-            w,
-            "$Elements\n{blocks} {total} 1 {total}\n3 1 4 {}",
-            self.tets.len()
-        )
-        .unwrap();
+        writeln!(w, "$Elements\n{blocks} {total} 1 {total}\n3 1 4 {}", self.tets.len()).unwrap();
         for (e, t) in self.tets.iter().enumerate() {
-            writeln!(
-                w,
-                "{} {} {} {} {}",
-                e + 1,
-                t[0] + 1,
-                t[1] + 1,
-                t[2] + 1,
-                t[3] + 1
-            )
-            .unwrap();
+            writeln!(w, "{} {} {} {} {}", e + 1, t[0] + 1, t[1] + 1, t[2] + 1, t[3] + 1).unwrap();
         }
         for (e, (_, node)) in points.iter().enumerate() {
             let tag = self.tets.len() + e + 1;

@@ -20,8 +20,7 @@ pub struct TestServer {
 impl TestServer {
     /// Serves the coarse phantom (fast to load) with the given limits.
     pub async fn start(limits: Limits, max_message_bytes: usize) -> Self {
-        let path =
-            Path::new(env!("CARGO_MANIFEST_DIR")).join("models/phantom-liver/liver-coarse.msh");
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/phantom-liver/liver-coarse.msh");
         let mesh = Arc::new(mesh::load(&MeshSource::File(path)).expect("coarse phantom"));
         Self::with_engine(Engine::new(mesh, limits), max_message_bytes).await
     }
@@ -29,9 +28,7 @@ impl TestServer {
     /// Serves a prepared engine (with extra models, say).
     pub async fn with_engine(engine: Engine, max_message_bytes: usize) -> Self {
         let engine = Arc::new(engine);
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
-            .await
-            .expect("bind");
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("bind");
         let address = listener.local_addr().expect("address");
         let (stop, stopped) = oneshot::channel::<()>();
         let served = engine.clone();
@@ -39,7 +36,7 @@ impl TestServer {
             let shutdown = async {
                 let _ = stopped.await;
             };
-            nak::serve::run(served, listener, max_message_bytes, shutdown)
+            nak::serve::run(served, listener, max_message_bytes, None, shutdown)
                 .await
                 .expect("server");
         });
