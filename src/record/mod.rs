@@ -3,8 +3,12 @@
 //! The service hands each exchange (request, answer, times) to [`Recorder::record`], which never
 //! blocks: a bounded queue feeds a writer thread, and when the queue is full the exchange is dropped
 //! and counted. The writer encodes protobuf messages with their schemas embedded, compresses chunks
-//! with zstd, finishes a chunk at least every second (so a hard kill loses at most that second),
+//! with LZ4, finishes a chunk at least every second (so a hard kill loses at most that second),
 //! rotates files by size and age, and writes the summary and indexes when closed.
+//!
+//! LZ4 rather than zstd: displacement fields are f32 noise to a compressor (zstd saved 12 %), and at
+//! 1,000 requests/s zstd's cost on a 2-core machine tripled the server's p99 (0.69 → 3.2 ms) where LZ4
+//! adds 0.2 ms.
 //!
 //! Channels: `/nak/requests` (nak.v1.PredictRequest), `/nak/responses` (nak.v1.PredictResponse, with
 //! the displacement payload configured by [`Payload`]), `/nak/timing` (nak.v1.RecordedTiming) and

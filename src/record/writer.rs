@@ -91,7 +91,7 @@ impl Writer {
         let origin = path.clone();
         let error = Self::mcap_error(&origin);
         let mut mcap = mcap::WriteOptions::new()
-            .compression(Some(mcap::Compression::Zstd))
+            .compression(Some(mcap::Compression::Lz4))
             .profile("")
             .library(format!("nak {}", env!("CARGO_PKG_VERSION")))
             .create(BufWriter::new(file))
