@@ -111,6 +111,16 @@ def machine() -> str:
     return f"{cores} vCPUs of an {cpu} ({simd}), Linux {platform.release()}, {rustc}"
 
 
+def steal(data: Path) -> tuple[float, float]:
+    """Mean and largest percentage of CPU time stolen by the hypervisor while the load tests ran."""
+    values = []
+    for line in (data / "vmstat.txt").read_text().splitlines():
+        fields = line.split()
+        if fields and fields[0].isdigit():
+            values.append(float(fields[-1]))
+    return (statistics.mean(values), max(values)) if values else (0.0, 0.0)
+
+
 def load_reports(data: Path, prefix: str) -> list[dict[str, Any]]:
     reports = [json.loads(p.read_text()) for p in sorted(data.glob(f"{prefix}-*.json"))]
     return sorted(reports, key=lambda r: (r["rate_rps"] or 0, r["concurrency"]))
