@@ -6,6 +6,7 @@
 pub mod bench;
 pub mod data;
 pub mod engine;
+pub mod fem;
 pub mod mesh;
 pub mod model;
 pub mod prior;

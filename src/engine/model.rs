@@ -38,6 +38,9 @@ pub enum ModelError {
     Solve(#[from] SolveError),
     #[error("{0}")]
     Runtime(String),
+    /// The request is valid in general but not for this model (e.g. a node it has no data for).
+    #[error("{0}")]
+    Unsupported(String),
 }
 
 /// The nodes a prediction answers for: their positions, and their ids unless they are every node in

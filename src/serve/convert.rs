@@ -3,7 +3,7 @@
 use bytes::Bytes;
 use tonic::{Code, Status};
 
-use crate::engine::{EngineError, Grasp, ModelInfo, ModelKind, Prediction, Request, Selection};
+use crate::engine::{EngineError, Grasp, ModelError, ModelInfo, ModelKind, Prediction, Request, Selection};
 use crate::mesh::{Sampling, TetMesh};
 use crate::proto::v1 as pb;
 
@@ -85,6 +85,10 @@ pub fn status(error: &EngineError) -> Status {
     let code = match error {
         EngineError::NotFound(_) => Code::NotFound,
         EngineError::InvalidArgument(_) => Code::InvalidArgument,
+        EngineError::Model {
+            source: ModelError::Unsupported(_),
+            ..
+        } => Code::InvalidArgument,
         EngineError::Model { .. } => Code::Internal,
     };
     Status::new(code, error.to_string())

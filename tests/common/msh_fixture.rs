@@ -16,21 +16,26 @@ impl Fixture {
     /// An n×n×n grid of unit-0.01 m cubes, each split into six positively oriented tetrahedra (Kuhn),
     /// with `fixed` on the face x = 0 and `grasp_01` on the face x = max.
     pub fn grid(n: usize) -> Self {
-        let h = 0.01;
-        let id = |i: usize, j: usize, k: usize| (i * (n + 1) + j) * (n + 1) + k;
+        Self::bar([n, n, n], [0.01; 3])
+    }
+
+    /// A box of nx×ny×nz cells of size h (per axis), Kuhn-split, `fixed` at x = 0, `grasp_01` at x = max.
+    pub fn bar(cells: [usize; 3], h: [f64; 3]) -> Self {
+        let [nx, ny, nz] = cells;
+        let id = |i: usize, j: usize, k: usize| (i * (ny + 1) + j) * (nz + 1) + k;
         let mut nodes = Vec::new();
-        for i in 0..=n {
-            for j in 0..=n {
-                for k in 0..=n {
-                    nodes.push([i as f64 * h, j as f64 * h, k as f64 * h]);
+        for i in 0..=nx {
+            for j in 0..=ny {
+                for k in 0..=nz {
+                    nodes.push([i as f64 * h[0], j as f64 * h[1], k as f64 * h[2]]);
                 }
             }
         }
         let mut tets = Vec::new();
         let perms = [[0, 1, 2], [0, 2, 1], [1, 0, 2], [1, 2, 0], [2, 0, 1], [2, 1, 0]];
-        for i in 0..n {
-            for j in 0..n {
-                for k in 0..n {
+        for i in 0..nx {
+            for j in 0..ny {
+                for k in 0..nz {
                     for p in perms {
                         let mut c = [i, j, k];
                         let mut tet = [id(c[0], c[1], c[2]); 4];
@@ -50,13 +55,13 @@ impl Fixture {
         };
         f.orient();
         let face = |i: usize| -> Vec<usize> {
-            (0..=n)
-                .flat_map(|j| (0..=n).map(move |k| (j, k)))
+            (0..=ny)
+                .flat_map(|j| (0..=nz).map(move |k| (j, k)))
                 .map(|(j, k)| id(i, j, k))
                 .collect()
         };
         f.sets.push(("fixed".into(), face(0)));
-        f.sets.push(("grasp_01".into(), face(n)));
+        f.sets.push(("grasp_01".into(), face(nx)));
         f
     }
 

@@ -1,0 +1,337 @@
+//! The exact real-time linear model `green-linear` (DESIGN.md §4; James & Pai's capacitance matrix).
+//!
+//! With G = K⁻¹ on the DOFs that are not fixed, the Dirichlet solution for grasped nodes S moved by
+//! u_S is `u = G[:,S] (G[S,S])⁻¹ u_S`: the forces at S that produce u_S, applied through G. Columns of
+//! G for every candidate grasp node are computed once (one sparse Cholesky, one solve per column),
+//! cached on disk keyed by the mesh and material hashes, and memory-mapped; a request is then a 3K×3K
+//! solve and a dense 3N×3K product.
+
+use std::collections::{BTreeMap, HashMap};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use faer::Mat;
+use memmap2::Mmap;
+use nalgebra::{DMatrix, DVector};
+use rayon::prelude::*;
+
+use super::{FemError, LinearSystem};
+use crate::engine::{DeformationModel, ModelError, ModelInfo, ModelKind, StageTiming, Target};
+use crate::mesh::TetMesh;
+use crate::prior::{InteractionPoints, Workspace};
+
+const MAGIC: &[u8; 8] = b"NAKGRN01";
+/// Header bytes before the candidate list: magic, node count, candidate count, two 64-byte hashes.
+const HEADER: usize = 8 + 8 + 8 + 64 + 64;
+/// Surface nodes this close to a grasp region get columns too: grasps hold a region node and its
+/// nearest neighbours, which may lie just outside the region.
+const REACH_M: f64 = 0.015;
+/// Right-hand sides solved together.
+const BATCH: usize = 48;
+
+/// Columns of G for the candidate nodes, memory-mapped from the cache.
+pub struct GreenLinear {
+    nodes: usize,
+    candidates: Vec<u32>,
+    column_of: HashMap<u32, usize>,
+    map: Mmap,
+    data_offset: usize,
+    pub path: PathBuf,
+}
+
+/// The hash of what G depends on besides the geometry: materials and the fixed set.
+pub fn material_hash(mesh: &TetMesh) -> String {
+    let mut h = blake3::Hasher::new();
+    h.update(b"nak-linear-materials-v1");
+    for (name, m) in &mesh.config.materials {
+        h.update(name.as_bytes());
+        for v in [m.shear_modulus, m.poisson_ratio] {
+            h.update(&v.to_le_bytes());
+        }
+    }
+    for n in mesh.node_sets.get("fixed").into_iter().flatten() {
+        h.update(&n.to_le_bytes());
+    }
+    h.finalize().to_hex().to_string()
+}
+
+/// Grasp-region nodes and the surface nodes within [`REACH_M`] of them, sorted.
+pub fn candidate_nodes(mesh: &TetMesh) -> Vec<u32> {
+    let region_nodes: Vec<u32> = mesh
+        .config
+        .sampling
+        .grasp_regions
+        .iter()
+        .filter_map(|r| mesh.node_sets.get(&r.node_set))
+        .flatten()
+        .copied()
+        .collect();
+    let near = |n: u32| {
+        let p = mesh.positions[n as usize];
+        region_nodes.iter().any(|&r| {
+            let q = mesh.positions[r as usize];
+            (0..3).map(|k| (p[k] - q[k]).powi(2)).sum::<f64>() <= REACH_M * REACH_M
+        })
+    };
+    mesh.surface_nodes.iter().copied().filter(|&n| near(n)).collect()
+}
+
+impl GreenLinear {
+    /// Loads the cached columns for `mesh` from `cache_dir`, computing and caching them first if
+    /// needed; `progress(done, total)` reports the columns solved.
+    pub fn load_or_compute(
+        mesh: &TetMesh,
+        cache_dir: &Path,
+        progress: impl Fn(usize, usize) + Sync,
+    ) -> Result<Self, FemError> {
+        let materials = material_hash(mesh);
+        let path = cache_dir.join(format!("green-{}-{}.bin", &mesh.content_hash[..16], &materials[..16]));
+        if !path.exists() {
+            let candidates = candidate_nodes(mesh);
+            let started = Instant::now();
+            compute(mesh, &candidates, &materials, &path, progress)?;
+            tracing::info!(
+                file = %path.display(),
+                columns = 3 * candidates.len(),
+                seconds = started.elapsed().as_secs_f64(),
+                "Green's functions computed"
+            );
+        }
+        Self::open(&path, mesh, &materials)
+    }
+
+    fn open(path: &Path, mesh: &TetMesh, materials: &str) -> Result<Self, FemError> {
+        let origin = path.display().to_string();
+        let corrupt = |message: &str| FemError::Cache {
+            path: origin.clone(),
+            message: format!("{message}; delete it to recompute"),
+        };
+        let file = std::fs::File::open(path).map_err(|source| FemError::Io {
+            path: origin.clone(),
+            source,
+        })?;
+        // SAFETY: the cache file is written once (atomically renamed into place) and never modified.
+        let map = unsafe { Mmap::map(&file) }.map_err(|source| FemError::Io {
+            path: origin.clone(),
+            source,
+        })?;
+        if map.len() < HEADER || &map[..8] != MAGIC {
+            return Err(corrupt("not a nak Green's function cache"));
+        }
+        let u64_at = |o: usize| u64::from_le_bytes(map[o..o + 8].try_into().unwrap_or_default()) as usize;
+        let (nodes, count) = (u64_at(8), u64_at(16));
+        if nodes != mesh.node_count()
+            || &map[24..88] != mesh.content_hash.as_bytes()
+            || &map[88..152] != materials.as_bytes()
+        {
+            return Err(corrupt("made for another mesh or materials"));
+        }
+        let list_end = HEADER + 4 * count;
+        let data_offset = list_end.div_ceil(64) * 64;
+        if map.len() != data_offset + 4 * 3 * count * 3 * nodes {
+            return Err(corrupt("truncated"));
+        }
+        let candidates: Vec<u32> = map[HEADER..list_end]
+            .chunks_exact(4)
+            .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect();
+        let column_of = candidates.iter().enumerate().map(|(i, &n)| (n, i)).collect();
+        Ok(Self {
+            nodes,
+            candidates,
+            column_of,
+            map,
+            data_offset,
+            path: path.to_owned(),
+        })
+    }
+
+    pub fn candidates(&self) -> &[u32] {
+        &self.candidates
+    }
+
+    /// Column of G for a unit force on (candidate index, component): 3N values.
+    fn column(&self, candidate: usize, component: usize) -> &[f32] {
+        let len = 3 * self.nodes;
+        let start = self.data_offset + 4 * (3 * candidate + component) * len;
+        bytemuck::cast_slice(&self.map[start..start + 4 * len])
+    }
+
+    /// Writes the displacement of `target`'s nodes (all nodes when `nodes` is `None`).
+    pub fn solve(&self, points: &InteractionPoints, nodes: Option<&[u32]>, out: &mut [f32]) -> Result<(), ModelError> {
+        let k = points.len();
+        let mut columns = Vec::with_capacity(k);
+        for &n in &points.nodes {
+            let c = self.column_of.get(&n).ok_or_else(|| {
+                ModelError::Unsupported(format!(
+                    "green-linear has no Green's function for node {n}: it serves grasps within {:.0} mm of \
+                     the grasp regions ({} nodes)",
+                    REACH_M * 1e3,
+                    self.candidates.len()
+                ))
+            })?;
+            columns.push(*c);
+        }
+        // G[S,S] (3K×3K, symmetric positive definite), then the forces f that produce u_S.
+        let gss = DMatrix::<f64>::from_fn(3 * k, 3 * k, |r, c| {
+            self.column(columns[c / 3], c % 3)[3 * points.nodes[r / 3] as usize + r % 3] as f64
+        });
+        let u = DVector::from_iterator(3 * k, points.displacements.iter().flatten().copied());
+        let forces = gss
+            .cholesky()
+            .ok_or_else(|| ModelError::Runtime("G[S,S] is not positive definite".into()))?
+            .solve(&u);
+        let weights: Vec<(usize, usize, f32)> = (0..3 * k).map(|i| (columns[i / 3], i % 3, forces[i] as f32)).collect();
+        match nodes {
+            None => {
+                // Rows split over cores; each adds the 3K weighted columns.
+                out.par_chunks_mut(3 * 1024).enumerate().for_each(|(chunk, rows)| {
+                    rows.fill(0.0);
+                    let start = chunk * 3 * 1024;
+                    for &(c, j, w) in &weights {
+                        let col = &self.column(c, j)[start..start + rows.len()];
+                        for (o, g) in rows.iter_mut().zip(col) {
+                            *o += w * g;
+                        }
+                    }
+                });
+            }
+            Some(nodes) => {
+                for (row, &n) in out.chunks_exact_mut(3).zip(nodes) {
+                    for (a, o) in row.iter_mut().enumerate() {
+                        *o = weights
+                            .iter()
+                            .map(|&(c, j, w)| w * self.column(c, j)[3 * n as usize + a])
+                            .sum();
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Solves for the columns in batches across cores and writes the cache file atomically.
+fn compute(
+    mesh: &TetMesh,
+    candidates: &[u32],
+    materials: &str,
+    path: &Path,
+    progress: impl Fn(usize, usize) + Sync,
+) -> Result<(), FemError> {
+    let system = LinearSystem::new(mesh)?;
+    let n = mesh.node_count();
+    let total = 3 * candidates.len();
+    let done = std::sync::atomic::AtomicUsize::new(0);
+    let batches: Vec<Vec<f32>> = (0..total)
+        .collect::<Vec<_>>()
+        .par_chunks(BATCH)
+        .map(|batch| {
+            let mut rhs = Mat::<f64>::zeros(system.dofs.len(), batch.len());
+            for (col, &c) in batch.iter().enumerate() {
+                if let Some(dof) = system.dofs.get(candidates[c / 3], c % 3) {
+                    rhs[(dof, col)] = 1.0;
+                }
+            }
+            system.solve_in_place(&mut rhs);
+            let mut out = vec![0.0f32; batch.len() * 3 * n];
+            for col in 0..batch.len() {
+                let dst = &mut out[col * 3 * n..(col + 1) * 3 * n];
+                for node in 0..n as u32 {
+                    for a in 0..3 {
+                        if let Some(dof) = system.dofs.get(node, a) {
+                            dst[3 * node as usize + a] = rhs[(dof, col)] as f32;
+                        }
+                    }
+                }
+            }
+            let finished = done.fetch_add(batch.len(), std::sync::atomic::Ordering::Relaxed) + batch.len();
+            progress(finished, total);
+            out
+        })
+        .collect();
+
+    let dir = path.parent().unwrap_or(Path::new("."));
+    std::fs::create_dir_all(dir).map_err(|source| FemError::Io {
+        path: dir.display().to_string(),
+        source,
+    })?;
+    let tmp = path.with_extension("partial");
+    let io = |source| FemError::Io {
+        path: tmp.display().to_string(),
+        source,
+    };
+    let mut file = std::io::BufWriter::new(std::fs::File::create(&tmp).map_err(io)?);
+    let mut header = Vec::with_capacity(HEADER + 4 * candidates.len() + 64);
+    header.extend_from_slice(MAGIC);
+    header.extend_from_slice(&(n as u64).to_le_bytes());
+    header.extend_from_slice(&(candidates.len() as u64).to_le_bytes());
+    header.extend_from_slice(mesh.content_hash.as_bytes());
+    header.extend_from_slice(materials.as_bytes());
+    for c in candidates {
+        header.extend_from_slice(&c.to_le_bytes());
+    }
+    header.resize(header.len().div_ceil(64) * 64, 0);
+    file.write_all(&header).map_err(io)?;
+    for batch in &batches {
+        file.write_all(bytemuck::cast_slice(batch)).map_err(io)?;
+    }
+    file.flush().map_err(io)?;
+    drop(file);
+    std::fs::rename(&tmp, path).map_err(|source| FemError::Io {
+        path: path.display().to_string(),
+        source,
+    })
+}
+
+/// `green-linear` as a served model.
+pub struct GreenLinearModel {
+    info: ModelInfo,
+    green: GreenLinear,
+}
+
+impl GreenLinearModel {
+    pub const NAME: &'static str = "green-linear";
+
+    pub fn new(mesh: &TetMesh, green: GreenLinear) -> Self {
+        let metadata = BTreeMap::from([
+            (
+                "description".to_owned(),
+                "exact linear FEM through precomputed Green's functions (capacitance matrix)".to_owned(),
+            ),
+            ("candidate_nodes".to_owned(), green.candidates.len().to_string()),
+            ("cache".to_owned(), green.path.display().to_string()),
+        ]);
+        Self {
+            info: ModelInfo {
+                name: Self::NAME.to_owned(),
+                kind: ModelKind::Exact,
+                mesh: mesh.content_hash.clone(),
+                regime: "linear".to_owned(),
+                metadata,
+            },
+            green,
+        }
+    }
+}
+
+impl DeformationModel for GreenLinearModel {
+    fn info(&self) -> &ModelInfo {
+        &self.info
+    }
+
+    fn predict(
+        &self,
+        points: &InteractionPoints,
+        target: Target<'_>,
+        _workspace: &mut Workspace,
+        out: &mut [f32],
+        timing: &mut StageTiming,
+    ) -> Result<(), ModelError> {
+        let start = Instant::now();
+        self.green.solve(points, target.nodes, out)?;
+        timing.network_us = start.elapsed().as_secs_f32() * 1e6;
+        Ok(())
+    }
+}
