@@ -1,12 +1,14 @@
 //! Per-stage latency of the ONNX test models on the paper-scale phantom (9,701 nodes), one grasper of
 //! ten nodes: the whole prediction in criterion, and the mean prior / network split from the engine's
-//! own stage timing. Needs ORT_DYLIB_PATH (scripts/onnxruntime-path).
+//! own stage timing; and green-linear at K = 10 and K = 20. Needs ORT_DYLIB_PATH
+//! (scripts/onnxruntime-path); green-linear's cache goes to target/green-cache.
 
 use std::path::Path;
 use std::sync::Arc;
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use nak::engine::{DeformationModel, Engine, Grasp, Limits, Request};
+use nak::fem::{GreenLinear, GreenLinearModel};
 use nak::mesh::{self, MeshSource};
 
 const MODELS: [&str; 5] = [
@@ -33,7 +35,26 @@ fn models(c: &mut Criterion) {
         }],
         ..Default::default()
     };
+    let cache = Path::new(env!("CARGO_MANIFEST_DIR")).join("target/green-cache");
+    let green = GreenLinear::load_or_compute(&mesh, &cache, |_, _| {}).expect("Green's functions");
+    engine.add_model(Arc::new(GreenLinearModel::new(&mesh, green)));
     let mut group = c.benchmark_group("model");
+    // green-linear at the paper's two-grasper size, K = 20.
+    let two = Request {
+        model: "green-linear".into(),
+        grasps: ["grasp_03", "grasp_08"]
+            .iter()
+            .map(|set| Grasp {
+                nodes: mesh.node_sets[*set].iter().take(10).copied().collect(),
+                displacement: [0.01, 0.02, 0.0],
+                ..Default::default()
+            })
+            .collect(),
+        ..Default::default()
+    };
+    group.bench_function("green-linear-k20", |b| {
+        b.iter(|| engine.predict(&two).expect("prediction"))
+    });
     for name in MODELS {
         let r = request(name);
         group.bench_function(name, |b| b.iter(|| engine.predict(&r).expect("prediction")));

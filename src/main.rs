@@ -10,6 +10,7 @@ use std::sync::Arc;
 use anyhow::Context;
 use clap::{Parser, Subcommand, ValueEnum};
 use nak::engine::{DeformationModel, Engine};
+use nak::fem::{GreenLinear, GreenLinearModel};
 use nak::mesh::{self, MeshSource, TetMesh};
 use nak::record::{Payload, Recorder};
 use nak::serve::{self, ServeConfig};
@@ -96,9 +97,16 @@ struct ServeArgs {
     record_scene_hz: Option<f64>,
 }
 
-/// Where networks come from.
+/// Where networks come from, and the exact linear model.
 #[derive(clap::Args)]
 struct ModelArgs {
+    /// Also serve `green-linear`, the exact linear FEM answer through precomputed Green's functions
+    /// (computed on first use and cached; see --cache-dir).
+    #[arg(long)]
+    green_linear: bool,
+    /// Where green-linear's Green's functions are cached [default: $XDG_CACHE_HOME/nak or ~/.cache/nak].
+    #[arg(long, value_name = "DIR")]
+    cache_dir: Option<PathBuf>,
     /// A directory whose subdirectories are models (manifest.toml + model.onnx); repeatable. A --mesh
     /// directory is always searched.
     #[arg(long = "models", value_name = "DIR")]
@@ -189,6 +197,8 @@ fn serve_config(args: ServeArgs) -> anyhow::Result<ServeConfig> {
     config.max_interaction_points = args.max_interaction_points.unwrap_or(config.max_interaction_points);
     config.max_message_bytes = args.max_message_bytes.unwrap_or(config.max_message_bytes);
     config.models.extend(args.models.dirs);
+    config.green_linear |= args.models.green_linear;
+    config.cache_dir = args.models.cache_dir.or(config.cache_dir);
     config.record = args.record.or(config.record);
     config.record_payload = args.record_payload.unwrap_or(config.record_payload);
     config.record_rotate_mb = args.record_rotate_mb.unwrap_or(config.record_rotate_mb);
@@ -211,7 +221,35 @@ fn build_engine(config: &ServeConfig) -> anyhow::Result<Engine> {
             engine.add_model(Arc::new(model));
         }
     }
+    if config.green_linear {
+        engine.add_model(Arc::new(green_linear(&mesh, config)?));
+    }
     Ok(engine)
+}
+
+/// Loads green-linear's Green's functions from the cache, computing them with a progress bar first.
+fn green_linear(mesh: &TetMesh, config: &ServeConfig) -> anyhow::Result<GreenLinearModel> {
+    let cache = config.cache_dir.clone().unwrap_or_else(default_cache_dir);
+    let bar = indicatif::ProgressBar::new(0).with_style(
+        indicatif::ProgressStyle::with_template("Green's functions {bar:30} {pos}/{len} columns, ETA {eta}")
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    );
+    let green = GreenLinear::load_or_compute(mesh, &cache, |done, total| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+    })
+    .with_context(|| format!("cannot prepare green-linear (cache {})", cache.display()))?;
+    bar.finish_and_clear();
+    info!(cache = %green.path.display(), candidates = green.candidates().len(), "green-linear ready");
+    Ok(GreenLinearModel::new(mesh, green))
+}
+
+fn default_cache_dir() -> PathBuf {
+    std::env::var_os("XDG_CACHE_HOME")
+        .map(PathBuf::from)
+        .or_else(|| std::env::var_os("HOME").map(|h| PathBuf::from(h).join(".cache")))
+        .unwrap_or_else(std::env::temp_dir)
+        .join("nak")
 }
 
 fn serve(args: ServeArgs) -> anyhow::Result<()> {
@@ -267,6 +305,8 @@ fn predict(args: PredictArgs) -> anyhow::Result<()> {
         mesh: args.mesh,
         models: args.models.dirs,
         ort_dylib: args.models.ort_dylib,
+        green_linear: args.models.green_linear,
+        cache_dir: args.models.cache_dir,
         ..ServeConfig::default()
     };
     let engine = build_engine(&config)?;

@@ -169,10 +169,7 @@ impl LinearSystem {
     }
 
     /// Eliminates `constrained` nodes; returns the system and the coupling to them.
-    pub fn with_constrained(
-        mesh: &TetMesh,
-        constrained: &[u32],
-    ) -> Result<(Self, Vec<Coupling>), FemError> {
+    pub fn with_constrained(mesh: &TetMesh, constrained: &[u32]) -> Result<(Self, Vec<Coupling>), FemError> {
         let dofs = DofMap::without(mesh.node_count(), constrained);
         let assembled = assemble(mesh, &dofs)?;
         let factor = assembled

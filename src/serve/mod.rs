@@ -31,6 +31,10 @@ pub struct ServeConfig {
     pub models: Vec<PathBuf>,
     /// ONNX Runtime shared library; absent: `ORT_DYLIB_PATH`.
     pub ort_dylib: Option<PathBuf>,
+    /// Serve the exact linear model `green-linear`.
+    pub green_linear: bool,
+    /// Where its Green's functions are cached.
+    pub cache_dir: Option<PathBuf>,
     pub listen: SocketAddr,
     /// Largest grasp displacement accepted, in millimetres.
     pub max_displacement_mm: f64,
@@ -53,6 +57,8 @@ impl Default for ServeConfig {
             mesh: None,
             models: Vec::new(),
             ort_dylib: None,
+            green_linear: false,
+            cache_dir: None,
             listen: SocketAddr::from(([127, 0, 0, 1], 50051)),
             max_displacement_mm: limits.max_displacement_m * 1e3,
             max_interaction_points: limits.max_interaction_points,
