@@ -44,6 +44,18 @@ enum Command {
     Predict(PredictArgs),
     /// Load-test a nak server: open or closed loop, unary or streaming, HDR latency percentiles.
     Bench(cli::bench::BenchArgs),
+    /// Generate a dataset: grasps from the paper's distribution p with finite-element ground truth.
+    Datagen(cli::datagen::DatagenArgs),
+    /// Evaluate a model on a dataset with the paper's DCM metric.
+    Eval {
+        #[command(flatten)]
+        eval: cli::eval::EvalArgs,
+        /// The dataset's mesh [default: the embedded phantom liver].
+        #[arg(long)]
+        mesh: Option<PathBuf>,
+        #[command(flatten)]
+        models: ModelArgs,
+    },
     /// Re-send the requests of an MCAP recording and compare the answers with the recorded ones.
     Replay(cli::replay::ReplayArgs),
     /// Inspect meshes.
@@ -156,6 +168,23 @@ fn main() -> anyhow::Result<()> {
         Command::Predict(args) => predict(args),
         Command::Bench(args) => cli::bench::run(args),
         Command::Replay(args) => cli::replay::run(args),
+        Command::Datagen(args) => {
+            let mesh = load_mesh(args.mesh.as_deref())?;
+            let cache = args.cache_dir.clone().unwrap_or_else(default_cache_dir);
+            cli::datagen::run(args, &mesh, cache)
+        }
+        Command::Eval { eval, mesh, models } => {
+            let config = ServeConfig {
+                mesh,
+                models: models.dirs,
+                ort_dylib: models.ort_dylib,
+                // green-linear is evaluated when asked for by name.
+                green_linear: models.green_linear || eval.model == GreenLinearModel::NAME,
+                cache_dir: models.cache_dir,
+                ..ServeConfig::default()
+            };
+            cli::eval::run(&eval, &build_engine(&config)?)
+        }
         Command::Mesh {
             command: MeshCommand::Info { path },
         } => {

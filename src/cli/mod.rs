@@ -1,4 +1,6 @@
 pub mod bench;
+pub mod datagen;
+pub mod eval;
 pub mod mesh_info;
 pub mod predict;
 pub mod replay;

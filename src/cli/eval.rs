@@ -1,0 +1,97 @@
+//! `nak eval`: DCM of a model on a dataset split, per subset, on screen and as JSON.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+
+use anyhow::{Context, bail};
+use nak::data::dataset;
+use nak::data::dcm::{self, SampleError, Summary};
+use nak::engine::{Engine, Request};
+use rayon::prelude::*;
+
+#[derive(clap::Args)]
+pub struct EvalArgs {
+    /// A dataset made by `nak datagen`.
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Model to evaluate.
+    #[arg(long, default_value = "kelvinlet")]
+    pub model: String,
+    /// Which samples: train, val, test or all.
+    #[arg(long, default_value = "test")]
+    split: String,
+    /// Write the results as JSON here.
+    #[arg(long)]
+    output: Option<PathBuf>,
+}
+
+pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
+    let info = dataset::read_info(&args.data)?;
+    let mesh = engine.mesh();
+    if info.mesh_hash != mesh.content_hash {
+        bail!(
+            "{} was made on mesh {} ({}); pass that mesh with --mesh (the loaded one is {})",
+            args.data.display(),
+            info.mesh_name,
+            info.mesh_hash,
+            mesh.content_hash
+        );
+    }
+    let mut errors: BTreeMap<String, Vec<SampleError>> = BTreeMap::new();
+    for chunk in 0..info.chunks() {
+        let samples = dataset::read_chunk(&args.data, chunk, info.node_count)
+            .with_context(|| format!("chunk {chunk} (is the dataset complete? re-run nak datagen to finish it)"))?;
+        let scored: Vec<(String, SampleError)> = samples
+            .par_iter()
+            .filter(|(s, _)| args.split == "all" || s.split == args.split)
+            .map(|(sample, truth)| {
+                let request = Request {
+                    model: args.model.clone(),
+                    grasps: sample.grasps(),
+                    ..Request::default()
+                };
+                let prediction = engine.predict(&request)?;
+                Ok((
+                    sample.subset.clone(),
+                    dcm::sample_error(truth, &prediction.displacements, &mesh.nodal_volumes),
+                ))
+            })
+            .collect::<Result<_, nak::engine::EngineError>>()?;
+        for (subset, e) in scored {
+            errors.entry("combined".into()).or_default().push(e);
+            errors.entry(subset).or_default().push(e);
+        }
+    }
+    let results: BTreeMap<String, Summary> = errors
+        .iter()
+        .filter_map(|(k, v)| dcm::summarize(v).map(|s| (k.clone(), s)))
+        .collect();
+    if results.is_empty() {
+        bail!("no samples in split {:?} of {}", args.split, args.data.display());
+    }
+    println!(
+        "{} on {} ({} regime, split {}):",
+        args.model,
+        args.data.display(),
+        info.regime,
+        args.split
+    );
+    println!("  subset      samples   DCM %   DCM nodal %   mean err   median err   max err");
+    for subset in ["single", "multi", "combined"] {
+        if let Some(s) = results.get(subset) {
+            println!(
+                "  {:<10} {:>8}  {:>6.2}  {:>12.2}  {:>9.4}  {:>11.4}  {:>8.4}",
+                subset, s.samples, s.dcm, s.dcm_nodal, s.mean_error, s.median_error, s.max_error
+            );
+        }
+    }
+    if let Some(path) = &args.output {
+        let json = serde_json::json!({
+            "model": args.model, "data": args.data, "split": args.split, "regime": info.regime,
+            "mesh_hash": info.mesh_hash, "subsets": results,
+        });
+        std::fs::write(path, serde_json::to_string_pretty(&json)? + "\n")
+            .with_context(|| format!("cannot write {}", path.display()))?;
+    }
+    Ok(())
+}

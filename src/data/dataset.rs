@@ -1,0 +1,206 @@
+//! Datasets of grasps and finite-element ground truth, in chunks readable from Rust and Python.
+//!
+//! A dataset directory holds `dataset.json` (mesh, regime, seed, sizes, split rule) and chunks
+//! `chunk-NNNNN.safetensors` + `chunk-NNNNN.json`. A chunk's safetensors holds `displacement` f32
+//! [B, N, 3] (the full field, metres); its JSON lists each sample: global index, subset (`single` or
+//! `multi`), split (`train`, `val`, `test`), and its grasps (region, nodes, displacement). A chunk's
+//! JSON is written last, by rename, so a chunk with a JSON is complete: generation resumes by skipping
+//! those. Sample i is drawn from (seed, i), so a dataset is the same however often it was resumed,
+//! and the linear and nonlinear sets of one seed hold the same grasps.
+
+use std::path::{Path, PathBuf};
+
+use safetensors::tensor::{Dtype, SafeTensors, TensorView};
+use serde::{Deserialize, Serialize};
+
+use super::{GraspSampler, SamplingError};
+use crate::engine::Grasp;
+
+#[derive(Debug, thiserror::Error)]
+pub enum DatasetError {
+    #[error("{path}: {source}")]
+    Io {
+        path: String,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{path}: {message}")]
+    Format { path: String, message: String },
+    #[error(transparent)]
+    Sampling(#[from] SamplingError),
+    #[error("{0}")]
+    Solver(String),
+}
+
+fn io(path: &Path) -> impl Fn(std::io::Error) -> DatasetError + '_ {
+    move |source| DatasetError::Io {
+        path: path.display().to_string(),
+        source,
+    }
+}
+
+fn format(path: &Path, message: impl std::fmt::Display) -> DatasetError {
+    DatasetError::Format {
+        path: path.display().to_string(),
+        message: message.to_string(),
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DatasetInfo {
+    pub mesh_name: String,
+    pub mesh_hash: String,
+    pub node_count: usize,
+    pub regime: String,
+    pub seed: u64,
+    pub single: usize,
+    pub multi: usize,
+    pub chunk_size: usize,
+    /// How samples are assigned to splits (see [`split_of`]).
+    pub split_rule: String,
+    pub made_by: String,
+}
+
+impl DatasetInfo {
+    pub fn total(&self) -> usize {
+        self.single + self.multi
+    }
+
+    pub fn chunks(&self) -> usize {
+        self.total().div_ceil(self.chunk_size)
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct GraspRecord {
+    pub region: String,
+    pub nodes: Vec<u32>,
+    pub displacement: [f64; 3],
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SampleRecord {
+    pub index: u64,
+    pub subset: String,
+    pub split: String,
+    pub grasps: Vec<GraspRecord>,
+}
+
+impl SampleRecord {
+    pub fn grasps(&self) -> Vec<Grasp> {
+        self.grasps
+            .iter()
+            .map(|g| Grasp {
+                nodes: g.nodes.clone(),
+                displacement: g.displacement,
+                ..Grasp::default()
+            })
+            .collect()
+    }
+}
+
+/// 80 % train, 10 % validation, 10 % test, by a fixed hash of the sample index (so a split does not
+/// depend on the dataset's size).
+pub fn split_of(index: u64) -> &'static str {
+    match index.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 60 {
+        0..=12 => "train",
+        13..=14 => "val",
+        _ => "test",
+    }
+}
+
+pub const SPLIT_RULE: &str = "(index * 0x9E3779B97F4A7C15) >> 60: 0-12 train, 13-14 val, 15 test";
+
+/// The grasps of sample `index`: single-grasper samples first, then multi-grasper ones.
+pub fn draw(sampler: &GraspSampler, info: &DatasetInfo, index: u64) -> Result<SampleRecord, DatasetError> {
+    let multi = index as usize >= info.single;
+    let grasps = sampler
+        .sample(info.seed, index, if multi { 2 } else { 1 })?
+        .into_iter()
+        .map(|(region, g)| GraspRecord {
+            region: sampler.regions()[region].name.clone(),
+            nodes: g.nodes,
+            displacement: g.displacement,
+        })
+        .collect();
+    Ok(SampleRecord {
+        index,
+        subset: if multi { "multi" } else { "single" }.to_owned(),
+        split: split_of(index).to_owned(),
+        grasps,
+    })
+}
+
+pub fn chunk_paths(dir: &Path, chunk: usize) -> (PathBuf, PathBuf) {
+    (
+        dir.join(format!("chunk-{chunk:05}.safetensors")),
+        dir.join(format!("chunk-{chunk:05}.json")),
+    )
+}
+
+/// Writes one chunk; the JSON goes last, by rename, marking the chunk complete.
+pub fn write_chunk(
+    dir: &Path,
+    chunk: usize,
+    node_count: usize,
+    samples: &[SampleRecord],
+    fields: &[Vec<f32>],
+) -> Result<(), DatasetError> {
+    let (tensors, json) = chunk_paths(dir, chunk);
+    let flat: Vec<f32> = fields.iter().flatten().copied().collect();
+    let view = TensorView::new(
+        Dtype::F32,
+        vec![samples.len(), node_count, 3],
+        bytemuck::cast_slice(&flat),
+    )
+    .map_err(|e| format(&tensors, e))?;
+    let bytes = safetensors::serialize([("displacement", view)], None).map_err(|e| format(&tensors, e))?;
+    std::fs::write(&tensors, bytes).map_err(io(&tensors))?;
+    let tmp = json.with_extension("json.partial");
+    let text = serde_json::to_string(samples).map_err(|e| format(&json, e))?;
+    std::fs::write(&tmp, text).map_err(io(&tmp))?;
+    std::fs::rename(&tmp, &json).map_err(io(&json))
+}
+
+pub fn read_info(dir: &Path) -> Result<DatasetInfo, DatasetError> {
+    let path = dir.join("dataset.json");
+    let text = std::fs::read_to_string(&path).map_err(io(&path))?;
+    serde_json::from_str(&text).map_err(|e| format(&path, e))
+}
+
+pub fn write_info(dir: &Path, info: &DatasetInfo) -> Result<(), DatasetError> {
+    std::fs::create_dir_all(dir).map_err(io(dir))?;
+    let path = dir.join("dataset.json");
+    let text = serde_json::to_string_pretty(info).map_err(|e| format(&path, e))?;
+    std::fs::write(&path, text + "\n").map_err(io(&path))
+}
+
+/// The samples of one complete chunk and their fields ([N, 3] each).
+pub fn read_chunk(dir: &Path, chunk: usize, node_count: usize) -> Result<Vec<(SampleRecord, Vec<f32>)>, DatasetError> {
+    let (tensors, json) = chunk_paths(dir, chunk);
+    let samples: Vec<SampleRecord> =
+        serde_json::from_str(&std::fs::read_to_string(&json).map_err(io(&json))?).map_err(|e| format(&json, e))?;
+    let bytes = std::fs::read(&tensors).map_err(io(&tensors))?;
+    let st = SafeTensors::deserialize(&bytes).map_err(|e| format(&tensors, e))?;
+    let view = st.tensor("displacement").map_err(|e| format(&tensors, e))?;
+    if view.dtype() != Dtype::F32 || view.shape() != [samples.len(), node_count, 3] {
+        return Err(format(
+            &tensors,
+            format!("displacement is {:?} {:?}", view.dtype(), view.shape()),
+        ));
+    }
+    let values: Vec<f32> = view
+        .data()
+        .chunks_exact(4)
+        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect();
+    Ok(samples
+        .into_iter()
+        .zip(values.chunks_exact(3 * node_count).map(<[f32]>::to_vec))
+        .collect())
+}
+
+/// Chunks already complete in `dir`.
+pub fn complete_chunks(dir: &Path, chunks: usize) -> Vec<bool> {
+    (0..chunks).map(|c| chunk_paths(dir, c).1.is_file()).collect()
+}
