@@ -245,18 +245,7 @@ async fn a_model_failing_at_run_time_answers_internal_and_the_server_goes_on() {
     }
     let server = TestServer::with_engine(engine, 1 << 20).await;
     let mut client = server.client().await;
-    let grasps: Vec<pb::Grasp> = two_graspers(&mesh)
-        .into_iter()
-        .map(|g| pb::Grasp {
-            nodes: g.nodes,
-            displacement: Some(pb::Vec3 {
-                x: g.displacement[0] as f32,
-                y: g.displacement[1] as f32,
-                z: g.displacement[2] as f32,
-            }),
-            ..Default::default()
-        })
-        .collect();
+    let grasps: Vec<pb::Grasp> = two_graspers(&mesh).iter().map(nak::serve::grasp_message).collect();
     let request = |model: &str| pb::PredictRequest {
         model: model.into(),
         grasps: grasps.clone(),

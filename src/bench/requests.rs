@@ -6,6 +6,7 @@ use crate::data::{GraspSampler, SamplingError};
 use crate::mesh::{GraspRegion, Sampling};
 use crate::proto::v1::deformation_client::DeformationClient;
 use crate::proto::v1::{self as pb, GetMeshRequest};
+use crate::serve::grasp_message;
 
 #[derive(Debug, thiserror::Error)]
 pub enum RequestsError {
@@ -72,16 +73,8 @@ pub fn draw(
         .map(|i| {
             let grasps = sampler
                 .sample(seed, i, graspers)?
-                .into_iter()
-                .map(|(_, g)| pb::Grasp {
-                    nodes: g.nodes,
-                    displacement: Some(pb::Vec3 {
-                        x: g.displacement[0] as f32,
-                        y: g.displacement[1] as f32,
-                        z: g.displacement[2] as f32,
-                    }),
-                    ..Default::default()
-                })
+                .iter()
+                .map(|(_, g)| grasp_message(g))
                 .collect();
             Ok(pb::PredictRequest {
                 model: model.to_owned(),

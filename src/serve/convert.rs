@@ -30,6 +30,21 @@ fn vec3(v: Option<&pb::Vec3>) -> Option<[f64; 3]> {
     v.map(|v| [v.x as f64, v.y as f64, v.z as f64])
 }
 
+/// The wire form of a grasp (what clients such as `nak bench` send).
+pub fn grasp_message(g: &Grasp) -> pb::Grasp {
+    let v = |v: [f64; 3]| pb::Vec3 {
+        x: v[0] as f32,
+        y: v[1] as f32,
+        z: v[2] as f32,
+    };
+    pb::Grasp {
+        nodes: g.nodes.clone(),
+        point: g.point.map(v),
+        radius: g.radius as f32,
+        displacement: Some(v(g.displacement)),
+    }
+}
+
 pub fn request(message: &pb::PredictRequest) -> Result<Request, Status> {
     let selection = match pb::NodeSelection::try_from(message.selection) {
         Ok(pb::NodeSelection::All) => Selection::All,

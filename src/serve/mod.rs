@@ -12,7 +12,7 @@ use serde::Deserialize;
 use tokio::net::TcpListener;
 use tracing::info;
 
-pub use convert::f32_bytes;
+pub use convert::{f32_bytes, grasp_message};
 pub use service::DeformationService;
 
 use crate::engine::{Engine, Limits};
