@@ -195,8 +195,16 @@ def render(data: Path, out: Path) -> None:
         "pointnet-residual": "PointNet 1.16 (+ Kelvinlet)",
         "pointnet-direct": "PointNet 1.16",
     }
-    for model in ["kelvinlet", "mlp-residual", "mlp-direct-prior", "pointnet-residual", "pointnet-direct"]:
+    for model in [
+        "kelvinlet",
+        "green-linear",
+        "mlp-residual",
+        "mlp-direct-prior",
+        "pointnet-residual",
+        "pointnet-direct",
+    ]:
         lines.append(f"| `{model}` | {criterion('model', model) / 1e3:.3f} | {paper.get(model, '–')} |")
+    lines.append(f"| `green-linear`, two graspers (K = 20) | {criterion('model', 'green-linear-k20') / 1e3:.3f} | – |")
     lines += [
         "",
         "## The Kelvinlet prior",
