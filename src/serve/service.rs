@@ -15,15 +15,19 @@ use crate::proto::v1 as pb;
 use crate::proto::v1::deformation_server::Deformation;
 use crate::record::{Exchange, Recorder};
 
+#[derive(Clone)]
 pub struct DeformationService {
     engine: Arc<Engine>,
     recorder: Option<Arc<Recorder>>,
     started: Instant,
+    /// GetMesh's answer, built once: the mesh never changes while serving.
+    mesh: Arc<pb::Mesh>,
 }
 
 impl DeformationService {
     pub fn new(engine: Arc<Engine>, recorder: Option<Arc<Recorder>>) -> Self {
         Self {
+            mesh: Arc::new(convert::mesh(engine.mesh())),
             engine,
             recorder,
             started: Instant::now(),
@@ -86,7 +90,7 @@ impl Deformation for DeformationService {
                 self.engine.mesh().config.name
             )));
         }
-        Ok(Response::new(convert::mesh(self.engine.mesh())))
+        Ok(Response::new(self.mesh.as_ref().clone()))
     }
 
     async fn get_status(&self, _request: Request<pb::GetStatusRequest>) -> Result<Response<pb::ServerStatus>, Status> {
@@ -116,11 +120,7 @@ impl Deformation for DeformationService {
         request: Request<Streaming<pb::PredictRequest>>,
     ) -> Result<Response<Self::PredictStreamStream>, Status> {
         let mut incoming = request.into_inner();
-        let service = DeformationService {
-            engine: self.engine.clone(),
-            recorder: self.recorder.clone(),
-            started: self.started,
-        };
+        let service = self.clone();
         // Requests are answered one at a time as they arrive, so answers keep their order. A refused
         // request is answered with `error` set; only a broken stream ends the call.
         let outgoing = async_stream(move |tx| async move {
