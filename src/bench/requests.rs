@@ -6,7 +6,7 @@ use crate::data::{GraspSampler, SamplingError};
 use crate::mesh::{GraspRegion, Sampling};
 use crate::proto::v1::deformation_client::DeformationClient;
 use crate::proto::v1::{self as pb, GetMeshRequest};
-use crate::serve::grasp_message;
+use crate::serve::{grasp_message, vec3_rows};
 
 #[derive(Debug, thiserror::Error)]
 pub enum RequestsError {
@@ -23,13 +23,7 @@ pub enum RequestsError {
 /// A sampler for the mesh the server at the other end of `client` serves.
 pub async fn sampler_for(client: &mut DeformationClient<Channel>) -> Result<GraspSampler, RequestsError> {
     let mesh = client.get_mesh(GetMeshRequest::default()).await?.into_inner();
-    let positions: Vec<[f64; 3]> = mesh
-        .positions
-        .chunks_exact(12)
-        .map(|c| {
-            std::array::from_fn(|k| f32::from_le_bytes([c[4 * k], c[4 * k + 1], c[4 * k + 2], c[4 * k + 3]]) as f64)
-        })
-        .collect();
+    let positions: Vec<[f64; 3]> = vec3_rows(&mesh.positions).map(|p| p.map(f64::from)).collect();
     if positions.len() != mesh.node_count as usize {
         return Err(RequestsError::Malformed(format!(
             "{} positions for {} nodes",

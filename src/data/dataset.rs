@@ -189,11 +189,8 @@ pub fn read_chunk(dir: &Path, chunk: usize, node_count: usize) -> Result<Vec<(Sa
             format!("displacement is {:?} {:?}", view.dtype(), view.shape()),
         ));
     }
-    let values: Vec<f32> = view
-        .data()
-        .chunks_exact(4)
-        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-        .collect();
+    // safetensors data is little-endian, as is every host nak builds for (see serve::convert).
+    let values: Vec<f32> = bytemuck::pod_collect_to_vec(view.data());
     Ok(samples
         .into_iter()
         .zip(values.chunks_exact(3 * node_count).map(<[f32]>::to_vec))

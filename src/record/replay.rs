@@ -8,6 +8,7 @@ use prost::Message;
 
 use super::{REQUESTS, RESPONSES};
 use crate::proto::v1 as pb;
+use crate::serve::response_rows;
 
 /// One recorded exchange: what was asked, when, and what was answered (if the answer was recorded).
 #[derive(Debug, Clone, PartialEq)]
@@ -107,22 +108,8 @@ pub fn read(path: &Path) -> Result<Recording, ReadError> {
 
 /// Largest difference between two answers over the rows the recorded one holds (metres).
 pub fn largest_difference(recorded: &pb::PredictResponse, replayed: &pb::PredictResponse) -> Option<f32> {
-    let rows = |r: &pb::PredictResponse| -> BTreeMap<u32, [f32; 3]> {
-        let ids: Box<dyn Iterator<Item = u32>> = if r.node_ids.is_empty() {
-            Box::new(0u32..)
-        } else {
-            Box::new(r.node_ids.clone().into_iter())
-        };
-        ids.zip(r.displacements.chunks_exact(12))
-            .map(|(n, c)| {
-                (
-                    n,
-                    std::array::from_fn(|k| f32::from_le_bytes([c[4 * k], c[4 * k + 1], c[4 * k + 2], c[4 * k + 3]])),
-                )
-            })
-            .collect()
-    };
-    let (old, new) = (rows(recorded), rows(replayed));
+    let new: BTreeMap<u32, [f32; 3]> = response_rows(replayed).collect();
+    let old: Vec<(u32, [f32; 3])> = response_rows(recorded).collect();
     if old.is_empty() {
         return None;
     }

@@ -17,6 +17,7 @@ use super::{Exchange, Payload, REQUESTS, RESPONSES, RecordConfig, RecordError, S
 use crate::mesh::TetMesh;
 use crate::proto::foxglove;
 use crate::proto::v1 as pb;
+use crate::serve::{f32_bytes, response_rows};
 
 /// A chunk is finished at least this often, bounding what a hard kill can lose.
 const FLUSH_EVERY: Duration = Duration::from_secs(1);
@@ -255,16 +256,12 @@ impl Writer {
                 r.node_count = 0;
             }
             Payload::Surface => {
-                let rows: Vec<(u32, &[u8])> = rows(response)
+                let rows: Vec<(u32, [f32; 3])> = response_rows(response)
                     .filter(|(n, _)| self.mesh.is_surface[*n as usize])
                     .collect();
-                let mut data = Vec::with_capacity(12 * rows.len());
-                for (_, row) in &rows {
-                    data.extend_from_slice(row);
-                }
                 r.node_ids = rows.iter().map(|(n, _)| *n).collect();
                 r.node_count = rows.len() as u32;
-                r.displacements = Bytes::from(data);
+                r.displacements = f32_bytes(rows.iter().flat_map(|(_, u)| *u).collect());
             }
         }
         r
@@ -273,10 +270,7 @@ impl Writer {
     /// The deformed surface as points (x, y, z, |u| in mm), for Foxglove's 3D panel.
     fn point_cloud(&self, response: &pb::PredictResponse, answered: SystemTime) -> Option<foxglove::PointCloud> {
         let mut data = Vec::new();
-        for (n, row) in rows(response).filter(|(n, _)| self.mesh.is_surface[*n as usize]) {
-            let u: [f32; 3] = std::array::from_fn(|k| {
-                f32::from_le_bytes([row[4 * k], row[4 * k + 1], row[4 * k + 2], row[4 * k + 3]])
-            });
+        for (n, u) in response_rows(response).filter(|(n, _)| self.mesh.is_surface[*n as usize]) {
             let p = self.mesh.positions[n as usize];
             for k in 0..3 {
                 data.extend_from_slice(&(p[k] as f32 + u[k]).to_le_bytes());
@@ -316,15 +310,4 @@ impl Writer {
             data: Bytes::from(data),
         })
     }
-}
-
-/// (node id, 12-byte row) of every row in a response: `node_ids` when present, else 0..n.
-fn rows(response: &pb::PredictResponse) -> impl Iterator<Item = (u32, &[u8])> {
-    let chunks = response.displacements.chunks_exact(12);
-    let ids: Box<dyn Iterator<Item = u32> + '_> = if response.node_ids.is_empty() {
-        Box::new(0u32..)
-    } else {
-        Box::new(response.node_ids.iter().copied())
-    };
-    ids.zip(chunks)
 }

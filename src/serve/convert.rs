@@ -26,6 +26,24 @@ pub fn f32_bytes(values: Vec<f32>) -> Bytes {
     Bytes::from_owner(F32Bytes(values))
 }
 
+/// The (x, y, z) rows of packed little-endian f32 bytes, as `Mesh.positions` and
+/// `PredictResponse.displacements` carry them.
+pub fn vec3_rows(bytes: &[u8]) -> impl Iterator<Item = [f32; 3]> + '_ {
+    bytes
+        .chunks_exact(12)
+        .map(|c| std::array::from_fn(|k| f32::from_le_bytes([c[4 * k], c[4 * k + 1], c[4 * k + 2], c[4 * k + 3]])))
+}
+
+/// (node id, displacement) of every row of an answer: its `node_ids` when present, else 0, 1, 2, ….
+pub fn response_rows(response: &pb::PredictResponse) -> impl Iterator<Item = (u32, [f32; 3])> + '_ {
+    let ids: Box<dyn Iterator<Item = u32> + '_> = if response.node_ids.is_empty() {
+        Box::new(0u32..)
+    } else {
+        Box::new(response.node_ids.iter().copied())
+    };
+    ids.zip(vec3_rows(&response.displacements))
+}
+
 fn vec3(v: Option<&pb::Vec3>) -> Option<[f64; 3]> {
     v.map(|v| [v.x as f64, v.y as f64, v.z as f64])
 }

@@ -12,7 +12,7 @@ use serde::Deserialize;
 use tokio::net::TcpListener;
 use tracing::info;
 
-pub use convert::{f32_bytes, grasp_message};
+pub use convert::{f32_bytes, grasp_message, response_rows, vec3_rows};
 pub use service::DeformationService;
 
 use crate::engine::{Engine, Limits};
