@@ -75,7 +75,7 @@ pub struct Progress {
 }
 
 /// Latencies and outcomes of the measured window, shared by the workers.
-struct Recorder {
+struct Tally {
     window: (Instant, Instant),
     latency: Mutex<Histogram<u64>>,
     server: Mutex<Histogram<u64>>,
@@ -89,7 +89,7 @@ fn histogram() -> Result<Histogram<u64>, BenchError> {
     Histogram::new_with_bounds(1, 100_000_000, 3).map_err(|e| BenchError::Config(format!("histogram: {e}")))
 }
 
-impl Recorder {
+impl Tally {
     fn new(window: (Instant, Instant)) -> Result<Self, BenchError> {
         Ok(Self {
             window,
@@ -204,7 +204,7 @@ pub async fn run(config: &BenchConfig, progress: impl Fn(Progress)) -> Result<Re
     let start = Instant::now() + Duration::from_millis(50);
     let measure_from = start + config.warmup;
     let end = measure_from + config.duration;
-    let recorder = Arc::new(Recorder::new((measure_from, end))?);
+    let tally = Arc::new(Tally::new((measure_from, end))?);
     let counter = Arc::new(AtomicU64::new(0));
     let mut pacer_queues = Vec::new();
     let mut workers = tokio::task::JoinSet::new();
@@ -217,7 +217,7 @@ pub async fn run(config: &BenchConfig, progress: impl Fn(Progress)) -> Result<Re
         let job = Job {
             client,
             pool: pool.clone(),
-            recorder: recorder.clone(),
+            tally: tally.clone(),
             counter: counter.clone(),
             due,
             start,
@@ -236,13 +236,13 @@ pub async fn run(config: &BenchConfig, progress: impl Fn(Progress)) -> Result<Re
     loop {
         tokio::select! {
             done = workers.join_next() => if done.is_none() { break },
-            _ = ticker.tick() => progress(recorder.progress(start, total)),
+            _ = ticker.tick() => progress(tally.progress(start, total)),
         }
     }
-    progress(recorder.progress(start, total));
+    progress(tally.progress(start, total));
 
-    let latency = Recorder::snapshot(&recorder.latency)?;
-    let server = Recorder::snapshot(&recorder.server)?;
+    let latency = Tally::snapshot(&tally.latency)?;
+    let server = Tally::snapshot(&tally.server)?;
     let requests = latency.len();
     Ok(Report {
         target: config.target.clone(),
@@ -260,7 +260,7 @@ pub async fn run(config: &BenchConfig, progress: impl Fn(Progress)) -> Result<Re
         throughput_rps: requests as f64 / config.duration.as_secs_f64(),
         latency_us: Percentiles::of(&latency),
         server_us: Percentiles::of(&server),
-        errors: recorder.errors.lock().map(|e| e.clone()).unwrap_or_default(),
+        errors: tally.errors.lock().map(|e| e.clone()).unwrap_or_default(),
     })
 }
 
@@ -269,7 +269,7 @@ pub async fn run(config: &BenchConfig, progress: impl Fn(Progress)) -> Result<Re
 struct Job {
     client: DeformationClient<Channel>,
     pool: Arc<Vec<PredictRequest>>,
-    recorder: Arc<Recorder>,
+    tally: Arc<Tally>,
     counter: Arc<AtomicU64>,
     due: Option<tokio::sync::mpsc::UnboundedReceiver<(u64, Instant)>>,
     start: Instant,
@@ -323,7 +323,7 @@ impl Job {
                 Ok(r) => Ok(r.into_inner().timing.map_or(0.0, |t| t.total_us)),
                 Err(status) => Err(code_name(status.code())),
             };
-            self.recorder.record(due, outcome);
+            self.tally.record(due, outcome);
         }
     }
 
@@ -338,8 +338,7 @@ impl Job {
         {
             Ok(r) => r.into_inner(),
             Err(status) => {
-                self.recorder
-                    .record(self.recorder.window.0, Err(code_name(status.code())));
+                self.tally.record(self.tally.window.0, Err(code_name(status.code())));
                 return;
             }
         };
@@ -347,7 +346,7 @@ impl Job {
         let (answered_tx, mut answered_rx) = tokio::sync::mpsc::channel::<()>(1);
         let closed_loop = self.due.is_none();
         let pool = self.pool.clone();
-        let recorder = self.recorder.clone();
+        let tally = self.tally.clone();
         let sender = {
             let due_times = due_times.clone();
             tokio::spawn(async move {
@@ -382,7 +381,7 @@ impl Job {
                 Ok(None) => break,
                 Err(status) => (Err(code_name(status.code())), true),
             };
-            recorder.record(due, outcome);
+            tally.record(due, outcome);
             if last || (closed_loop && answered_tx.send(()).await.is_err()) {
                 break;
             }
