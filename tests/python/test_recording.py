@@ -122,3 +122,30 @@ def test_a_hard_kill_keeps_everything_up_to_the_last_chunk(nak_binary: Path, tmp
     assert f"replayed    {recovered} exchanges" in out.stdout, out.stdout
     assert "mismatched  0 status" in out.stdout
     assert "largest 0.000e0 m" in out.stdout, out.stdout
+
+
+def test_files_rotate_by_size_and_each_is_complete(nak_binary: Path, tmp_path: Path) -> None:
+    pb, rpc = client.load_stubs()
+    args = ["--record", str(tmp_path), "--record-payload", "full", "--record-rotate-mb", "1"]
+    sent = 0
+    with start_server(nak_binary, args) as address:
+        with grpc.insecure_channel(address) as channel:
+            stub = rpc.DeformationStub(channel)
+            requests = grasps(pb, stub, 20)
+            # Full fields are ~116 kB: a few per second pass 1 MiB; rotation is checked every second.
+            deadline = time.monotonic() + 3.5
+            while time.monotonic() < deadline:
+                stub.Predict(requests[sent % 20])
+                sent += 1
+                time.sleep(0.02)
+    files = sorted(tmp_path.glob("*.mcap"))
+    assert len(files) >= 2, files
+    recorded = 0
+    for path in files:
+        with open(path, "rb") as f:
+            reader = make_reader(f)
+            summary = reader.get_summary()  # every file, rotated or last, is finished
+            assert summary is not None and summary.statistics is not None
+            assert "nak.server" in {m.name for m in reader.iter_metadata()}
+            recorded += sum(1 for _, c, _ in reader.iter_messages() if c.topic == "/nak/requests")
+    assert recorded == sent
