@@ -137,3 +137,153 @@ fn eval_scores_the_exact_model_at_100_and_writes_json() {
     assert!(!wrong.status.success());
     assert!(String::from_utf8_lossy(&wrong.stderr).contains("pass that mesh with --mesh"));
 }
+
+fn fixture_box() -> std::path::PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/box.msh")
+}
+
+/// `nak datagen` on the box fixture (small enough for debug builds) with extra arguments.
+fn datagen_box(out: &Path, cache: &Path, extra: &[&str]) -> std::process::Output {
+    nak()
+        .arg("datagen")
+        .arg("--mesh")
+        .arg(fixture_box())
+        .args([
+            "--single",
+            "6",
+            "--multi",
+            "0",
+            "--chunk-size",
+            "3",
+            "--seed",
+            "3",
+            "--out",
+        ])
+        .arg(out)
+        .arg("--cache-dir")
+        .arg(cache)
+        .args(extra)
+        .output()
+        .unwrap()
+}
+
+fn samples(dir: &Path) -> Vec<(dataset::SampleRecord, Vec<f32>)> {
+    let info = dataset::read_info(dir).unwrap();
+    (0..info.chunks())
+        .flat_map(|c| dataset::read_chunk(dir, c, info.node_count).unwrap())
+        .collect()
+}
+
+#[test]
+fn nonlinear_datagen_is_deterministic_resumable_and_shares_grasps_with_linear() {
+    let dir = tempfile::tempdir().unwrap();
+    let cache = dir.path().join("cache");
+    let (a, b, linear) = (dir.path().join("a"), dir.path().join("b"), dir.path().join("linear"));
+    let nonlinear = ["--regime", "nonlinear"];
+    let first = datagen_box(&a, &cache, &nonlinear);
+    assert!(first.status.success(), "{}", String::from_utf8_lossy(&first.stderr));
+    let report = String::from_utf8_lossy(&first.stdout);
+    assert!(report.contains("6 solved") && report.contains("0 failed"), "{report}");
+    // The second run reads the cached preload; interrupting it after one chunk and resuming gives
+    // the same bytes.
+    assert!(datagen_box(&b, &cache, &nonlinear).status.success());
+    std::fs::remove_file(dataset::chunk_paths(&b, 1).1).unwrap();
+    let resumed = datagen_box(&b, &cache, &nonlinear);
+    assert!(String::from_utf8_lossy(&resumed.stdout).contains("(1 resumed)"));
+    for chunk in 0..2 {
+        let (sa, sb) = (dataset::chunk_paths(&a, chunk), dataset::chunk_paths(&b, chunk));
+        assert_eq!(std::fs::read(&sa.0).unwrap(), std::fs::read(&sb.0).unwrap());
+        assert_eq!(std::fs::read(&sa.1).unwrap(), std::fs::read(&sb.1).unwrap());
+    }
+    assert!(datagen_box(&linear, &cache, &[]).status.success());
+    let (nonlinear_samples, linear_samples) = (samples(&a), samples(&linear));
+    assert_eq!(nonlinear_samples.len(), 6);
+    for ((n, n_field), (l, l_field)) in nonlinear_samples.iter().zip(&linear_samples) {
+        assert_eq!(
+            n.grasps, l.grasps,
+            "sample {} draws the same grasps in both regimes",
+            n.index
+        );
+        let solver = n.solver.as_ref().unwrap();
+        assert!(solver.failure.is_none() && solver.stats.load_steps >= 1 && solver.stats.newton_iterations >= 1);
+        // Relative to the preloaded state, grasped nodes move exactly as prescribed.
+        for (node, u) in n.prescribed() {
+            for k in 0..3 {
+                assert!((n_field[3 * node as usize + k] as f64 - u[k]).abs() < 1e-6);
+            }
+        }
+        // Large grasps: the nonlinear field differs from the linear one, but not wildly.
+        let difference: f32 = n_field
+            .iter()
+            .zip(l_field)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f32::max);
+        let size: f32 = l_field.iter().map(|x| x.abs()).fold(0.0, f32::max);
+        assert!(difference > 1e-4 * size && difference < size, "{difference} vs {size}");
+    }
+}
+
+#[test]
+fn failed_nonlinear_samples_are_recorded_and_left_out_of_eval() {
+    let dir = tempfile::tempdir().unwrap();
+    let cache = dir.path().join("cache");
+    let data = dir.path().join("data");
+    // A normal run caches the gravity preload, which the crippled options below could not solve.
+    assert!(
+        datagen_box(&dir.path().join("warm"), &cache, &["--regime", "nonlinear"])
+            .status
+            .success()
+    );
+    // One Newton iteration and no step cuts: grasps of several centimetres cannot converge.
+    let output = datagen_box(
+        &data,
+        &cache,
+        &[
+            "--regime",
+            "nonlinear",
+            "--max-newton-iterations",
+            "1",
+            "--max-step-cuts",
+            "0",
+        ],
+    );
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    let all = samples(&data);
+    let failed: Vec<_> = all.iter().filter(|(s, _)| s.failed()).collect();
+    assert!(!failed.is_empty(), "{}", String::from_utf8_lossy(&output.stdout));
+    for (s, field) in &failed {
+        let reason = s.solver.as_ref().unwrap().failure.as_ref().unwrap();
+        assert!(
+            reason.contains("load step") && reason.contains("residual history"),
+            "{reason}"
+        );
+        assert!(
+            field.iter().all(|v| v.is_nan()),
+            "a failed sample has no field to mistake for truth"
+        );
+    }
+    let json = dir.path().join("eval.json");
+    let eval = nak()
+        .arg("eval")
+        .arg("--data")
+        .arg(&data)
+        .arg("--mesh")
+        .arg(fixture_box())
+        .args(["--split", "all", "--output"])
+        .arg(&json)
+        .output()
+        .unwrap();
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap_or_default()).unwrap_or(serde_json::Value::Null);
+    if failed.len() == all.len() {
+        assert!(!eval.status.success(), "nothing left to score");
+    } else {
+        assert!(eval.status.success(), "{}", String::from_utf8_lossy(&eval.stderr));
+        assert_eq!(report["failed_samples"].as_array().unwrap().len(), failed.len());
+        assert_eq!(
+            report["subsets"]["combined"]["samples"].as_u64().unwrap() as usize,
+            all.len() - failed.len()
+        );
+        assert!(String::from_utf8_lossy(&eval.stdout).contains("left out"));
+    }
+}

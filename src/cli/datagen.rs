@@ -4,8 +4,10 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use nak::data::dataset::{DatasetInfo, SPLIT_RULE};
-use nak::data::generate::generate_linear;
+use nak::data::generate::{generate_linear, generate_nonlinear};
 use nak::fem::GreenLinear;
+use nak::fem::nonlinear::NewtonOptions;
+use nak::fem::preload::Preloaded;
 use nak::mesh::TetMesh;
 
 #[derive(clap::Args)]
@@ -32,7 +34,13 @@ pub struct DatagenArgs {
     /// Samples per chunk file.
     #[arg(long, default_value_t = 100)]
     chunk_size: usize,
-    /// Where the Green's functions are cached [default: $XDG_CACHE_HOME/nak or ~/.cache/nak].
+    /// Nonlinear: Newton iterations allowed per load step before the step is cut.
+    #[arg(long, default_value_t = NewtonOptions::default().max_iterations)]
+    max_newton_iterations: usize,
+    /// Nonlinear: load-step halvings allowed before a sample is recorded as failed.
+    #[arg(long, default_value_t = NewtonOptions::default().max_step_cuts)]
+    max_step_cuts: usize,
+    /// Where the Green's functions and the gravity preload are cached [default: $XDG_CACHE_HOME/nak or ~/.cache/nak].
     #[arg(long)]
     pub cache_dir: Option<PathBuf>,
 }
@@ -41,6 +49,8 @@ pub struct DatagenArgs {
 enum Regime {
     /// Small-strain linear elasticity (DESIGN.md §4).
     Linear,
+    /// Compressible Mooney–Rivlin from the gravity-preloaded state (DESIGN.md §4).
+    Nonlinear,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -60,6 +70,7 @@ pub fn run(args: DatagenArgs, mesh: &TetMesh, cache: PathBuf) -> anyhow::Result<
         node_count: mesh.node_count(),
         regime: match args.regime {
             Regime::Linear => "linear".into(),
+            Regime::Nonlinear => "nonlinear".into(),
         },
         seed: args.seed,
         single: args.single.unwrap_or(single),
@@ -72,26 +83,51 @@ pub fn run(args: DatagenArgs, mesh: &TetMesh, cache: PathBuf) -> anyhow::Result<
         indicatif::ProgressStyle::with_template("{msg} {bar:30} {pos}/{len} ({per_sec}, ETA {eta})")
             .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
     );
-    bar.set_message("Green's functions");
-    let green = GreenLinear::load_or_compute(mesh, &cache, |done, total| {
-        bar.set_length(total as u64);
-        bar.set_position(done as u64);
-    })
-    .with_context(|| format!("cannot prepare the Green's functions (cache {})", cache.display()))?;
-    bar.set_message("samples");
-    bar.set_position(0);
     let started = std::time::Instant::now();
-    let generated = generate_linear(mesh, &green, &info, &args.out, |done, total| {
+    let update = |done: usize, total: usize| {
         bar.set_length(total as u64);
         bar.set_position(done as u64);
-    })?;
+    };
+    let generated = match args.regime {
+        Regime::Linear => {
+            bar.set_message("Green's functions");
+            let green = GreenLinear::load_or_compute(mesh, &cache, update)
+                .with_context(|| format!("cannot prepare the Green's functions (cache {})", cache.display()))?;
+            bar.set_message("samples");
+            bar.set_position(0);
+            generate_linear(mesh, &green, &info, &args.out, update)?
+        }
+        Regime::Nonlinear => {
+            bar.set_message("gravity preload (one Newton solve, cached)");
+            bar.enable_steady_tick(std::time::Duration::from_millis(200));
+            let options = NewtonOptions {
+                max_iterations: args.max_newton_iterations,
+                max_step_cuts: args.max_step_cuts,
+                ..NewtonOptions::default()
+            };
+            let preloaded = Preloaded::load_or_compute(mesh, &cache, options)
+                .with_context(|| format!("cannot solve the gravity preload (cache {})", cache.display()))?;
+            if let Some(solved) = &preloaded.solved {
+                bar.println(format!(
+                    "gravity preload: {} load steps, {} Newton iterations, {:.1} s; cached in {}",
+                    solved.stats.load_steps,
+                    solved.stats.newton_iterations,
+                    solved.seconds,
+                    preloaded.path.display()
+                ));
+            }
+            bar.set_message("samples");
+            bar.set_position(0);
+            generate_nonlinear(mesh, &preloaded, &info, &args.out, update)?
+        }
+    };
     bar.finish_and_clear();
     let seconds = started.elapsed().as_secs_f64();
     let new = generated
         .samples
         .saturating_sub(generated.chunks_skipped * info.chunk_size);
     println!(
-        "{}: {} samples ({} single, {} multi) in {} chunks ({} resumed); {:.1} s, {:.0} samples/s; {} direct solves",
+        "{}: {} samples ({} single, {} multi) in {} chunks ({} resumed); {:.1} s, {:.1} samples/s",
         args.out.display(),
         generated.samples,
         info.single,
@@ -100,7 +136,27 @@ pub fn run(args: DatagenArgs, mesh: &TetMesh, cache: PathBuf) -> anyhow::Result<
         generated.chunks_skipped,
         seconds,
         new as f64 / seconds.max(1e-9),
-        generated.direct_solves
     );
+    match args.regime {
+        Regime::Linear => println!("{} direct solves", generated.direct_solves),
+        Regime::Nonlinear => {
+            let t = &generated.nonlinear;
+            let per = |v: f64| v / t.solved.max(1) as f64;
+            println!(
+                "nonlinear: {} solved, {:.2} s per sample on one core, Newton iterations {:.1} mean / {} max, \
+                 load steps {:.1} mean, {} with step cuts ({:.1} %), {} with shifted tangents, {} failed ({:.1} %)",
+                t.solved,
+                per(t.solve_seconds),
+                per(t.newton_iterations as f64),
+                t.max_newton_iterations,
+                per(t.load_steps as f64),
+                t.cut,
+                100.0 * per(t.cut as f64),
+                t.shifted,
+                t.failed,
+                100.0 * per(t.failed as f64),
+            );
+        }
+    }
     Ok(())
 }

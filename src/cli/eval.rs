@@ -38,12 +38,13 @@ pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
         );
     }
     let mut errors: BTreeMap<String, Vec<SampleError>> = BTreeMap::new();
+    let mut failed = Vec::new();
     for chunk in 0..info.chunks() {
         let samples = dataset::read_chunk(&args.data, chunk, info.node_count)
             .with_context(|| format!("chunk {chunk} (is the dataset complete? re-run nak datagen to finish it)"))?;
         let scored: Vec<(String, SampleError)> = samples
             .par_iter()
-            .filter(|(s, _)| args.split == "all" || s.split == args.split)
+            .filter(|(s, _)| (args.split == "all" || s.split == args.split) && !s.failed())
             .map(|(sample, truth)| {
                 let request = Request {
                     model: args.model.clone(),
@@ -57,6 +58,12 @@ pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
                 ))
             })
             .collect::<Result<_, nak::engine::EngineError>>()?;
+        failed.extend(
+            samples
+                .iter()
+                .filter(|(s, _)| (args.split == "all" || s.split == args.split) && s.failed())
+                .map(|(s, _)| s.index),
+        );
         for (subset, e) in scored {
             errors.entry("combined".into()).or_default().push(e);
             errors.entry(subset).or_default().push(e);
@@ -76,6 +83,12 @@ pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
         info.regime,
         args.split
     );
+    if !failed.is_empty() {
+        println!(
+            "  {} samples left out: their ground-truth solve failed (indices {failed:?}; see their chunk JSON)",
+            failed.len()
+        );
+    }
     println!("  subset      samples   DCM %   DCM nodal %   mean err   median err   max err");
     for subset in ["single", "multi", "combined"] {
         if let Some(s) = results.get(subset) {
@@ -88,7 +101,7 @@ pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
     if let Some(path) = &args.output {
         let json = serde_json::json!({
             "model": args.model, "data": args.data, "split": args.split, "regime": info.regime,
-            "mesh_hash": info.mesh_hash, "subsets": results,
+            "mesh_hash": info.mesh_hash, "subsets": results, "failed_samples": failed,
         });
         std::fs::write(path, serde_json::to_string_pretty(&json)? + "\n")
             .with_context(|| format!("cannot write {}", path.display()))?;

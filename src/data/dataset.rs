@@ -15,6 +15,7 @@ use serde::{Deserialize, Serialize};
 
 use super::{GraspSampler, SamplingError};
 use crate::engine::Grasp;
+use crate::fem::nonlinear::SolveStats;
 
 #[derive(Debug, thiserror::Error)]
 pub enum DatasetError {
@@ -84,9 +85,34 @@ pub struct SampleRecord {
     pub subset: String,
     pub split: String,
     pub grasps: Vec<GraspRecord>,
+    /// How the nonlinear solver fared (absent in linear datasets).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub solver: Option<SolveRecord>,
+}
+
+/// The nonlinear solve of one sample. A failed sample keeps its place in the dataset with a NaN
+/// field and the reason here, so nothing is silently dropped or replaced.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SolveRecord {
+    #[serde(flatten)]
+    pub stats: SolveStats,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub failure: Option<String>,
 }
 
 impl SampleRecord {
+    pub fn failed(&self) -> bool {
+        self.solver.as_ref().is_some_and(|s| s.failure.is_some())
+    }
+
+    /// Every grasped node with its displacement.
+    pub fn prescribed(&self) -> Vec<(u32, [f64; 3])> {
+        self.grasps
+            .iter()
+            .flat_map(|g| g.nodes.iter().map(move |&n| (n, g.displacement)))
+            .collect()
+    }
+
     pub fn grasps(&self) -> Vec<Grasp> {
         self.grasps
             .iter()
@@ -128,6 +154,7 @@ pub fn draw(sampler: &GraspSampler, info: &DatasetInfo, index: u64) -> Result<Sa
         subset: if multi { "multi" } else { "single" }.to_owned(),
         split: split_of(index).to_owned(),
         grasps,
+        solver: None,
     })
 }
 

@@ -1,24 +1,55 @@
-//! `nak datagen --regime linear`: samples from p with linear finite-element ground truth.
+//! `nak datagen`: samples from p with finite-element ground truth, linear or nonlinear.
 
 use std::path::Path;
+use std::sync::Mutex;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 use rayon::prelude::*;
 
 use super::GraspSampler;
-use super::dataset::{self, DatasetError, DatasetInfo, SampleRecord};
+use super::dataset::{self, DatasetError, DatasetInfo, SampleRecord, SolveRecord};
+use crate::fem::nonlinear::SolveStats;
+use crate::fem::preload::Preloaded;
 use crate::fem::{GreenLinear, solve_dirichlet};
 use crate::mesh::TetMesh;
 use crate::prior::InteractionPoints;
 
-/// What a generation run did.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// What a generation run did (counts cover the samples solved in this run, not resumed chunks).
+#[derive(Debug, Clone, Default, PartialEq)]
 pub struct Generated {
     pub chunks_written: usize,
     pub chunks_skipped: usize,
     pub samples: usize,
-    /// Samples whose grasp reached past the precomputed Green's functions, solved directly instead.
+    /// Linear: samples whose grasp reached past the precomputed Green's functions, solved directly.
     pub direct_solves: usize,
+    /// Nonlinear: solver effort summed over the samples solved, and how many needed step cuts or failed.
+    pub nonlinear: NonlinearTally,
+}
+
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct NonlinearTally {
+    pub solved: usize,
+    pub newton_iterations: usize,
+    pub load_steps: usize,
+    pub cut: usize,
+    pub failed: usize,
+    pub shifted: usize,
+    /// Sum of per-sample solve times (s): divided by `solved`, the cost of one sample on one core.
+    pub solve_seconds: f64,
+    pub max_newton_iterations: usize,
+}
+
+impl NonlinearTally {
+    fn add(&mut self, stats: &SolveStats, failed: bool, seconds: f64) {
+        self.solved += 1;
+        self.newton_iterations += stats.newton_iterations;
+        self.load_steps += stats.load_steps;
+        self.cut += usize::from(stats.step_cuts > 0);
+        self.failed += usize::from(failed);
+        self.shifted += usize::from(stats.shifted_factorizations > 0);
+        self.solve_seconds += seconds;
+        self.max_newton_iterations = self.max_newton_iterations.max(stats.newton_iterations);
+    }
 }
 
 /// The exact linear field of one sample: through G when every grasped node has a column (fast),
@@ -30,10 +61,8 @@ fn linear_field(
     direct: &AtomicUsize,
 ) -> Result<Vec<f32>, DatasetError> {
     let mut points = InteractionPoints::default();
-    for g in &sample.grasps {
-        for &n in &g.nodes {
-            points.push(n, mesh.positions[n as usize], g.displacement);
-        }
+    for (n, u) in sample.prescribed() {
+        points.push(n, mesh.positions[n as usize], u);
     }
     let mut field = vec![0.0f32; 3 * mesh.node_count()];
     if points.nodes.iter().all(|n| green.candidates().binary_search(n).is_ok()) {
@@ -42,30 +71,84 @@ fn linear_field(
             .map_err(|e| DatasetError::Solver(e.to_string()))?;
     } else {
         direct.fetch_add(1, Ordering::Relaxed);
-        let prescribed: Vec<(u32, [f64; 3])> = points
-            .nodes
-            .iter()
-            .copied()
-            .zip(points.displacements.iter().copied())
-            .collect();
-        let u = solve_dirichlet(mesh, &prescribed)
+        let u = solve_dirichlet(mesh, &sample.prescribed())
             .map_err(|e| DatasetError::Solver(format!("sample {}: {e}", sample.index)))?;
-        for (dst, src) in field.chunks_exact_mut(3).zip(&u) {
-            for k in 0..3 {
-                dst[k] = src[k] as f32;
-            }
-        }
+        write_field(&mut field, &u);
     }
     Ok(field)
 }
 
-/// Generates (or resumes) the dataset described by `info` in `dir`; `progress(samples done, total)`.
+fn write_field(field: &mut [f32], u: &[[f64; 3]]) {
+    for (dst, src) in field.chunks_exact_mut(3).zip(u) {
+        for k in 0..3 {
+            dst[k] = src[k] as f32;
+        }
+    }
+}
+
+/// Generates (or resumes) a linear dataset; `progress(samples done, total)`.
 pub fn generate_linear(
     mesh: &TetMesh,
     green: &GreenLinear,
     info: &DatasetInfo,
     dir: &Path,
     progress: impl Fn(usize, usize) + Sync,
+) -> Result<Generated, DatasetError> {
+    let direct = AtomicUsize::new(0);
+    let mut generated = generate(mesh, info, dir, progress, |sample| {
+        linear_field(mesh, green, sample, &direct)
+    })?;
+    generated.direct_solves = direct.load(Ordering::Relaxed);
+    Ok(generated)
+}
+
+/// Generates (or resumes) a nonlinear dataset from the gravity-preloaded state. A sample whose solve
+/// fails is kept with a NaN field and its failure report; the run goes on.
+pub fn generate_nonlinear(
+    mesh: &TetMesh,
+    preloaded: &Preloaded,
+    info: &DatasetInfo,
+    dir: &Path,
+    progress: impl Fn(usize, usize) + Sync,
+) -> Result<Generated, DatasetError> {
+    let tally = Mutex::new(NonlinearTally::default());
+    let mut generated = generate(mesh, info, dir, progress, |sample| {
+        let started = std::time::Instant::now();
+        let mut field = vec![f32::NAN; 3 * mesh.node_count()];
+        let record = match preloaded.grasp(&sample.prescribed()) {
+            Ok(equilibrium) => {
+                write_field(&mut field, &equilibrium.displacement);
+                SolveRecord {
+                    stats: equilibrium.stats,
+                    failure: None,
+                }
+            }
+            Err(e) => {
+                tracing::warn!(sample = sample.index, "nonlinear solve failed: {e}");
+                SolveRecord {
+                    stats: SolveStats::default(),
+                    failure: Some(e.to_string()),
+                }
+            }
+        };
+        if let Ok(mut t) = tally.lock() {
+            t.add(&record.stats, record.failure.is_some(), started.elapsed().as_secs_f64());
+        }
+        sample.solver = Some(record);
+        Ok(field)
+    })?;
+    generated.nonlinear = tally.into_inner().unwrap_or_default();
+    Ok(generated)
+}
+
+/// The chunked, resumable driver both regimes share: draws each chunk's samples from (seed, index),
+/// solves them in parallel over cores with `solve`, writes the chunk.
+fn generate(
+    mesh: &TetMesh,
+    info: &DatasetInfo,
+    dir: &Path,
+    progress: impl Fn(usize, usize) + Sync,
+    solve: impl Fn(&mut SampleRecord) -> Result<Vec<f32>, DatasetError> + Sync,
 ) -> Result<Generated, DatasetError> {
     if let Ok(existing) = dataset::read_info(dir)
         && existing != *info
@@ -80,12 +163,9 @@ pub fn generate_linear(
     let complete = dataset::complete_chunks(dir, info.chunks());
     let total = info.total();
     let done = AtomicUsize::new(0);
-    let direct = AtomicUsize::new(0);
     let mut result = Generated {
-        chunks_written: 0,
-        chunks_skipped: 0,
         samples: total,
-        direct_solves: 0,
+        ..Generated::default()
     };
     for (chunk, is_complete) in complete.into_iter().enumerate() {
         let range = chunk * info.chunk_size..((chunk + 1) * info.chunk_size).min(total);
@@ -95,14 +175,16 @@ pub fn generate_linear(
             progress(done.load(Ordering::Relaxed), total);
             continue;
         }
-        let samples: Vec<SampleRecord> = range
+        let mut samples: Vec<SampleRecord> = range
             .clone()
             .map(|i| dataset::draw(&sampler, info, i as u64))
             .collect::<Result<_, _>>()?;
+        // One sample per task: nonlinear samples vary from a second to a minute.
         let fields: Vec<Vec<f32>> = samples
-            .par_iter()
+            .par_iter_mut()
+            .with_max_len(1)
             .map(|s| {
-                let f = linear_field(mesh, green, s, &direct);
+                let f = solve(s);
                 progress(done.fetch_add(1, Ordering::Relaxed) + 1, total);
                 f
             })
@@ -110,6 +192,5 @@ pub fn generate_linear(
         dataset::write_chunk(dir, chunk, mesh.node_count(), &samples, &fields)?;
         result.chunks_written += 1;
     }
-    result.direct_solves = direct.load(Ordering::Relaxed);
     Ok(result)
 }

@@ -103,15 +103,10 @@ impl DofMap {
 
 /// Per-tetrahedron Lamé parameters from the mesh's region materials.
 fn lame_per_tet(mesh: &TetMesh) -> Result<Vec<(f64, f64)>, FemError> {
-    let mut per_region = Vec::with_capacity(mesh.regions.len());
-    for region in &mesh.regions {
-        let m = mesh
-            .config
-            .materials
-            .get(&region.name)
-            .ok_or_else(|| FemError::Material(region.name.clone()))?;
-        per_region.push((lame_lambda(m.shear_modulus, m.poisson_ratio), m.shear_modulus));
-    }
+    let per_region: Vec<(f64, f64)> = super::region_materials(mesh)?
+        .into_iter()
+        .map(|m| (lame_lambda(m.shear_modulus, m.poisson_ratio), m.shear_modulus))
+        .collect();
     Ok(mesh.tet_region.iter().map(|&r| per_region[r as usize]).collect())
 }
 

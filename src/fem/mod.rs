@@ -1,10 +1,29 @@
-//! Finite elements: linear elasticity (and the exact real-time linear model built on it).
+//! Finite elements: linear elasticity (and the exact real-time linear model built on it), and
+//! hyperelasticity with gravity preload for nonlinear ground truth.
 
 pub mod green;
+pub mod hyperelastic;
 pub mod linear;
+pub mod nonlinear;
+pub mod preload;
 
 pub use green::{GreenLinear, GreenLinearModel};
 pub use linear::{DofMap, LinearSystem, solve_dirichlet};
+
+use crate::mesh::{Material, TetMesh};
+
+/// Each region's material from model.toml, in region order.
+pub fn region_materials(mesh: &TetMesh) -> Result<Vec<&Material>, FemError> {
+    mesh.regions
+        .iter()
+        .map(|region| {
+            mesh.config
+                .materials
+                .get(&region.name)
+                .ok_or_else(|| FemError::Material(region.name.clone()))
+        })
+        .collect()
+}
 
 #[derive(Debug, thiserror::Error)]
 pub enum FemError {
@@ -22,6 +41,20 @@ pub enum FemError {
         #[source]
         source: std::io::Error,
     },
+    #[error(
+        "no equilibrium at load step {step} (load fraction {load:.4}): {reason}; residual history (N) [{}]",
+        scientific(.residuals)
+    )]
+    NotConverged {
+        step: usize,
+        load: f64,
+        reason: String,
+        residuals: Vec<f64>,
+    },
     #[error("{path}: {message}")]
     Cache { path: String, message: String },
+}
+
+fn scientific(values: &[f64]) -> String {
+    values.iter().map(|v| format!("{v:.2e}")).collect::<Vec<_>>().join(", ")
 }

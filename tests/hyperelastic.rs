@@ -1,0 +1,291 @@
+//! Mooney–Rivlin finite elements against finite differences, the linear solver and an analytic
+//! homogeneous stretch; Newton's energy descent and its handling of inverted elements.
+
+mod common;
+
+use std::path::Path;
+
+use common::msh_fixture::Fixture;
+use nak::fem::hyperelastic::MooneyRivlin;
+use nak::fem::nonlinear::{Equilibrium, Hyperelastic, Load, NewtonOptions};
+use nak::fem::solve_dirichlet;
+use nak::mesh::{MeshConfig, TetMesh};
+use nalgebra::Matrix3;
+
+fn mesh(f: &Fixture) -> TetMesh {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/model.toml");
+    let config = MeshConfig::parse(&std::fs::read_to_string(path).unwrap(), "model.toml").unwrap();
+    TetMesh::from_msh(f.to_msh().as_bytes(), "fixture.msh", config).unwrap()
+}
+
+/// Moves `prescribed` nodes from the reference configuration with no body force.
+fn solve_without_gravity(m: &TetMesh, prescribed: &[(u32, [f64; 3])]) -> (Hyperelastic, Equilibrium) {
+    let solver = Hyperelastic::new(m, false, NewtonOptions::default()).unwrap();
+    let start = vec![[0.0; 3]; m.node_count()];
+    let result = solver
+        .solve(Load {
+            start: &start,
+            prescribed,
+            body_from: 0.0,
+            body_to: 0.0,
+        })
+        .unwrap();
+    (solver, result)
+}
+
+fn liver() -> MooneyRivlin {
+    MooneyRivlin::new(1620.0, 1970.0, 0.45)
+}
+
+/// A generic deformation gradient with J ≈ 1.1, sheared and rotated.
+fn deformation() -> Matrix3<f64> {
+    Matrix3::new(1.10, 0.15, -0.05, -0.08, 0.95, 0.12, 0.04, -0.10, 1.06)
+}
+
+fn largest(values: impl IntoIterator<Item = f64>) -> f64 {
+    values.into_iter().fold(0.0, |m, v| m.max(v.abs()))
+}
+
+/// Central differences with h = 1e-6 leave O(h²) ≈ 1e-12 truncation and ~1e-10 round-off relative
+/// to these stresses (kPa): 1e-6 relative separates a correct derivative from a wrong one by orders.
+const DIFFERENCE_TOLERANCE: f64 = 1e-6;
+
+#[test]
+fn stress_and_tangent_are_the_derivatives_of_the_energy() {
+    let law = liver();
+    let f = deformation();
+    let (p, a) = law.stress_and_tangent(&f).unwrap();
+    let h = 1e-6;
+    for k in 0..3 {
+        for l in 0..3 {
+            let mut plus = f;
+            plus[(k, l)] += h;
+            let mut minus = f;
+            minus[(k, l)] -= h;
+            let dw = (law.energy(&plus).unwrap() - law.energy(&minus).unwrap()) / (2.0 * h);
+            assert!(
+                (dw - p[(k, l)]).abs() <= DIFFERENCE_TOLERANCE * largest(p.iter().copied()),
+                "P[{k}{l}] = {} vs dW/dF = {dw}",
+                p[(k, l)]
+            );
+            let dp = (law.stress(&plus).unwrap() - law.stress(&minus).unwrap()) / (2.0 * h);
+            let scale = largest(a.iter().flatten().copied());
+            for i in 0..3 {
+                for j in 0..3 {
+                    let exact = a[3 * i + j][3 * k + l];
+                    assert!(
+                        (dp[(i, j)] - exact).abs() <= DIFFERENCE_TOLERANCE * scale,
+                        "A[{i}{j}][{k}{l}] = {exact} vs {}",
+                        dp[(i, j)]
+                    );
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn the_reference_state_is_stress_free_and_inverted_states_are_refused() {
+    let law = liver();
+    assert!(largest(law.stress(&Matrix3::identity()).unwrap().iter().copied()) < 1e-9);
+    assert_eq!(law.energy(&Matrix3::identity()), Some(0.0));
+    let mirrored = Matrix3::from_diagonal(&nalgebra::Vector3::new(-1.0, 1.0, 1.0));
+    assert!(law.energy(&mirrored).is_none());
+    assert!(law.stress_and_tangent(&mirrored).is_none());
+}
+
+#[test]
+fn assembled_tangent_matches_differences_of_the_internal_force() {
+    let m = mesh(&Fixture::bar([3, 2, 2], [0.01; 3]));
+    let solver = Hyperelastic::new(&m, true, NewtonOptions::default()).unwrap();
+    // A smooth, finite deformation: bending plus twist, well away from inversion.
+    let u: Vec<[f64; 3]> = m
+        .positions
+        .iter()
+        .map(|p| {
+            [
+                0.1 * p[0] * p[1] / 0.02,
+                -0.2 * p[0] * p[0] / 0.03,
+                0.15 * p[0] * p[2] / 0.02,
+            ]
+        })
+        .collect();
+    let (tangent, _) = solver.linearize(&u).unwrap();
+    let dense = tangent.to_dense();
+    let dofs = solver.dofs();
+    let h = 1e-7;
+    let scale = largest(dense.col_iter().flat_map(|c| c.iter().copied().collect::<Vec<_>>()));
+    for node in [5u32, 17, 22, 35] {
+        for c in 0..3 {
+            let Some(col) = dofs.get(node, c) else { continue };
+            let shifted = |sign: f64| {
+                let mut v = u.clone();
+                v[node as usize][c] += sign * h;
+                solver.linearize(&v).unwrap().1
+            };
+            let (plus, minus) = (shifted(1.0), shifted(-1.0));
+            for n in 0..m.node_count() as u32 {
+                for k in 0..3 {
+                    let Some(row) = dofs.get(n, k) else { continue };
+                    let difference = (plus[n as usize][k] - minus[n as usize][k]) / (2.0 * h);
+                    assert!(
+                        (difference - dense[(row, col)]).abs() <= DIFFERENCE_TOLERANCE * scale,
+                        "K[{row}][{col}] = {} vs {difference}",
+                        dense[(row, col)]
+                    );
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn small_displacements_match_the_linear_solver() {
+    let mut m = mesh(&Fixture::bar([4, 2, 2], [0.01; 3]));
+    // The linear material the Mooney–Rivlin law linearizes to.
+    for material in m.config.materials.values_mut() {
+        material.shear_modulus = 2.0 * (material.c10 + material.c01);
+    }
+    let tip = [2e-7, -3e-7, 1e-7];
+    let prescribed: Vec<(u32, [f64; 3])> = m.node_sets["grasp_01"].iter().map(|&n| (n, tip)).collect();
+    let linear = solve_dirichlet(&m, &prescribed).unwrap();
+    let (_, nonlinear) = solve_without_gravity(&m, &prescribed);
+    let scale = largest(linear.iter().flatten().copied());
+    let difference = largest(
+        linear
+            .iter()
+            .zip(&nonlinear.displacement)
+            .flat_map(|(a, b)| (0..3).map(move |k| a[k] - b[k])),
+    );
+    // Strains are ~1e-5, so the geometric and material nonlinearity is ~1e-5 relative.
+    assert!(
+        difference <= 1e-3 * scale,
+        "difference {difference:e} vs field {scale:e}"
+    );
+}
+
+/// ∂W/∂λ_i for principal stretches, from the energy written in stretches (independent of the tensor
+/// code): the first Piola–Kirchhoff stress of a diagonal deformation.
+fn principal_stress(law: &MooneyRivlin, s: [f64; 3]) -> [f64; 3] {
+    let j = s[0] * s[1] * s[2];
+    let i1 = s.iter().map(|x| x * x).sum::<f64>();
+    let i2 = s[0].powi(2) * s[1].powi(2) + s[1].powi(2) * s[2].powi(2) + s[0].powi(2) * s[2].powi(2);
+    std::array::from_fn(|k| {
+        let others = i1 - s[k] * s[k];
+        law.c10 * j.powf(-2.0 / 3.0) * (2.0 * s[k] - 2.0 / 3.0 * i1 / s[k])
+            + law.c01 * j.powf(-4.0 / 3.0) * (2.0 * s[k] * others - 4.0 / 3.0 * i2 / s[k])
+            + law.kappa * (j - 1.0) * j / s[k]
+    })
+}
+
+#[test]
+fn a_cube_in_uniaxial_stretch_carries_the_analytic_mooney_rivlin_stress() {
+    let mut fixture = Fixture::grid(2);
+    // Hold only the corner at the origin (it does not move under F); prescribe the rest of the surface.
+    fixture.sets[0].1 = vec![0];
+    let m = mesh(&fixture);
+    let law = MooneyRivlin::from_material(&m.config.materials["liver"]);
+    let stretch = 1.3;
+    // Lateral stretch with zero lateral stress, by bisection on the analytic stress.
+    let (mut low, mut high) = (0.5, 1.0);
+    for _ in 0..200 {
+        let mid = 0.5 * (low + high);
+        if principal_stress(&law, [stretch, mid, mid])[1] > 0.0 {
+            high = mid;
+        } else {
+            low = mid;
+        }
+    }
+    let lateral = 0.5 * (low + high);
+    let s = [stretch, lateral, lateral];
+    let exact = |p: [f64; 3]| std::array::from_fn::<f64, 3, _>(|k| (s[k] - 1.0) * p[k]);
+    let prescribed: Vec<(u32, [f64; 3])> = m
+        .surface_nodes
+        .iter()
+        .filter(|&&n| n != 0)
+        .map(|&n| (n, exact(m.positions[n as usize])))
+        .collect();
+    let (_, result) = solve_without_gravity(&m, &prescribed);
+    // P1 elements represent the homogeneous field exactly: the interior node sits where F puts it.
+    let centre = (0..m.node_count()).find(|&n| !m.is_surface[n]).unwrap();
+    let want = exact(m.positions[centre]);
+    for (got, want) in result.displacement[centre].iter().zip(want) {
+        assert!((got - want).abs() < 1e-10);
+    }
+    // The reactions on the face x = 0.02 m add up to P11 times its reference area.
+    let face_force: f64 = prescribed
+        .iter()
+        .zip(&result.reactions)
+        .filter(|((n, _), _)| (m.positions[*n as usize][0] - 0.02).abs() < 1e-12)
+        .map(|(_, r)| r[0])
+        .sum();
+    let p11 = principal_stress(&law, s)[0];
+    let area = 0.02 * 0.02;
+    assert!(
+        (face_force - p11 * area).abs() <= 1e-8 * (p11 * area).abs(),
+        "face force {face_force} N vs P11·A = {} N",
+        p11 * area
+    );
+    // And the stress itself, from the tensor code, is uniaxial.
+    let f = Matrix3::from_diagonal(&nalgebra::Vector3::from(s));
+    let p = law.stress(&f).unwrap();
+    assert!((p[(0, 0)] - p11).abs() < 1e-9 * p11.abs());
+    assert!(p[(1, 1)].abs() < 1e-6 * p11.abs() && p[(2, 2)].abs() < 1e-6 * p11.abs());
+}
+
+#[test]
+fn newton_decreases_the_energy_and_converges_under_gravity_and_a_large_grasp() {
+    let m = mesh(&Fixture::bar([6, 2, 2], [0.01; 3]));
+    let solver = Hyperelastic::new(&m, true, NewtonOptions::default()).unwrap();
+    let start = vec![[0.0; 3]; m.node_count()];
+    let pull = [0.02, 0.03, -0.015];
+    let prescribed: Vec<(u32, [f64; 3])> = m.node_sets["grasp_01"].iter().map(|&n| (n, pull)).collect();
+    let result = solver
+        .solve(Load {
+            start: &start,
+            prescribed: &prescribed,
+            body_from: 0.0,
+            body_to: 1.0,
+        })
+        .unwrap();
+    assert!(result.stats.newton_iterations >= 2);
+    let mut checked = 0;
+    for step in 0..result.stats.load_steps + result.stats.step_cuts {
+        // The first record of a step is its predictor, taken at the previous step's constraints.
+        let energies: Vec<f64> = result
+            .iterations
+            .iter()
+            .filter(|i| i.load_step == step)
+            .skip(1)
+            .map(|i| i.energy)
+            .collect();
+        for pair in energies.windows(2) {
+            assert!(pair[1] <= pair[0] + 1e-12 * pair[0].abs(), "energy rose: {pair:?}");
+            checked += 1;
+        }
+    }
+    assert!(checked >= 1);
+    for (n, target) in &prescribed {
+        assert_eq!(&result.displacement[*n as usize], target);
+    }
+}
+
+#[test]
+fn inverting_trial_steps_are_cut_and_the_solve_still_converges() {
+    let m = mesh(&Fixture::grid(3));
+    // Push the grasp face's centre node 25 mm into a 30 mm cube (cells are 10 mm): the linear
+    // predictor over the whole load folds the neighbouring elements.
+    let centre = m.node_sets["grasp_01"]
+        .iter()
+        .copied()
+        .find(|&n| {
+            let p = m.positions[n as usize];
+            (p[1] - 0.01).abs() < 1e-9 && (p[2] - 0.01).abs() < 1e-9
+        })
+        .unwrap();
+    let prescribed = [(centre, [-0.025, 0.0, 0.0])];
+    let (solver, result) = solve_without_gravity(&m, &prescribed);
+    assert!(result.stats.inverted_trials > 0, "{:?}", result.stats);
+    assert!(result.stats.step_cuts > 0, "{:?}", result.stats);
+    assert!(solver.energy(&result.displacement, 0.0).is_some());
+}
