@@ -12,6 +12,7 @@ use clap::{Parser, Subcommand, ValueEnum};
 use nak::engine::{DeformationModel, Engine};
 use nak::fem::{GreenLinear, GreenLinearModel};
 use nak::mesh::{self, MeshSource, TetMesh};
+use nak::prior::PriorBackend;
 use nak::record::{Payload, Recorder};
 use nak::serve::{self, ServeConfig};
 use tracing::info;
@@ -126,6 +127,9 @@ struct ModelArgs {
     /// ONNX Runtime shared library (libonnxruntime.so.1.31.1) [default: $ORT_DYLIB_PATH].
     #[arg(long, value_name = "PATH")]
     ort_dylib: Option<PathBuf>,
+    /// Where the Kelvinlet field is evaluated; `auto` times both at start-up [default: cpu].
+    #[arg(long, value_enum)]
+    prior_backend: Option<PriorBackend>,
 }
 
 #[derive(clap::Args)]
@@ -181,6 +185,7 @@ fn main() -> anyhow::Result<()> {
                 // green-linear is evaluated when asked for by name.
                 green_linear: models.green_linear || eval.model == GreenLinearModel::NAME,
                 cache_dir: models.cache_dir,
+                prior_backend: models.prior_backend.unwrap_or_default(),
                 ..ServeConfig::default()
             };
             cli::eval::run(&eval, &build_engine(&config)?)
@@ -235,6 +240,7 @@ fn serve_config(args: ServeArgs) -> anyhow::Result<ServeConfig> {
     config.record_queue = args.record_queue.unwrap_or(config.record_queue);
     config.record_scene_hz = args.record_scene_hz.unwrap_or(config.record_scene_hz);
     config.ort_dylib = args.models.ort_dylib.or(config.ort_dylib);
+    config.prior_backend = args.models.prior_backend.unwrap_or(config.prior_backend);
     Ok(config)
 }
 
@@ -242,6 +248,10 @@ fn serve_config(args: ServeArgs) -> anyhow::Result<ServeConfig> {
 fn build_engine(config: &ServeConfig) -> anyhow::Result<Engine> {
     let mesh = Arc::new(load_mesh(config.mesh.as_deref())?);
     let mut engine = Engine::new(mesh.clone(), config.limits());
+    let choice = engine
+        .use_prior_backend(config.prior_backend)
+        .context("cannot use the GPU prior (--prior-backend gpu); `auto` falls back to the CPU")?;
+    info!("{choice}");
     for root in config.model_roots() {
         let models = nak::model::load_all(&root, &mesh, config.ort_dylib.as_deref())
             .with_context(|| format!("cannot load the models in {}", root.display()))?;
@@ -336,6 +346,7 @@ fn predict(args: PredictArgs) -> anyhow::Result<()> {
         ort_dylib: args.models.ort_dylib,
         green_linear: args.models.green_linear,
         cache_dir: args.models.cache_dir,
+        prior_backend: args.models.prior_backend.unwrap_or_default(),
         ..ServeConfig::default()
     };
     let engine = build_engine(&config)?;

@@ -39,9 +39,12 @@ pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
     }
     let mut errors: BTreeMap<String, Vec<SampleError>> = BTreeMap::new();
     let mut failed = Vec::new();
-    for chunk in 0..info.chunks() {
-        let samples = dataset::read_chunk(&args.data, chunk, info.node_count)
-            .with_context(|| format!("chunk {chunk} (is the dataset complete? re-run nak datagen to finish it)"))?;
+    // Long nonlinear runs are scored while they are still being generated: complete chunks only.
+    let complete = dataset::complete_chunks(&args.data, info.chunks());
+    let incomplete = complete.iter().filter(|&&c| !c).count();
+    for chunk in (0..info.chunks()).filter(|&c| complete[c]) {
+        let samples =
+            dataset::read_chunk(&args.data, chunk, info.node_count).with_context(|| format!("chunk {chunk}"))?;
         let scored: Vec<(String, SampleError)> = samples
             .par_iter()
             .filter(|(s, _)| (args.split == "all" || s.split == args.split) && !s.failed())
@@ -83,6 +86,12 @@ pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
         info.regime,
         args.split
     );
+    if incomplete > 0 {
+        println!(
+            "  {incomplete} of {} chunks are not generated yet and were left out (nak datagen resumes them)",
+            info.chunks()
+        );
+    }
     if !failed.is_empty() {
         println!(
             "  {} samples left out: their ground-truth solve failed (indices {failed:?}; see their chunk JSON)",

@@ -12,7 +12,8 @@ pub use grasp::Grasp;
 pub use model::{DeformationModel, KelvinletModel, ModelError, ModelInfo, ModelKind, StageTiming, Target};
 
 use crate::mesh::TetMesh;
-use crate::prior::{InteractionPoints, NodeCloud, Workspace};
+use crate::prior::gpu::GpuError;
+use crate::prior::{InteractionPoints, Kelvinlet, NodeCloud, PriorBackend, Workspace, backend};
 
 /// What the server accepts.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -123,6 +124,13 @@ impl Engine {
             surface_nodes,
             scratch: Mutex::new(Vec::new()),
         }
+    }
+
+    /// Evaluates the prior of every whole-mesh and surface request on `backend` (listed node subsets
+    /// stay on the CPU: they are small and change per request). Returns what was chosen and why.
+    pub fn use_prior_backend(&mut self, backend: PriorBackend) -> Result<String, GpuError> {
+        let kelvinlet = Kelvinlet::new(self.mesh.config.prior);
+        backend::attach(backend, &kelvinlet, &mut [&mut self.all_nodes, &mut self.surface_nodes])
     }
 
     /// Serves `model` beside the others; a model of the same name is replaced.

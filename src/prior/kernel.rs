@@ -9,6 +9,7 @@
 use multiversion::multiversion;
 use rayon::prelude::*;
 
+use super::gpu::Resident;
 use super::{Coefficients, Kelvinlet};
 
 /// Nodes per block: 64 × 6 f32 arrays stay in L1 and fill whole AVX-512 registers.
@@ -25,6 +26,8 @@ pub struct NodeCloud {
     x: Vec<[f32; BLOCK]>,
     y: Vec<[f32; BLOCK]>,
     z: Vec<[f32; BLOCK]>,
+    /// Set when the cloud is also uploaded to the GPU: fields are then evaluated there.
+    resident: Option<Resident>,
 }
 
 impl NodeCloud {
@@ -36,6 +39,7 @@ impl NodeCloud {
             x: vec![[0.0; BLOCK]; blocks],
             y: vec![[0.0; BLOCK]; blocks],
             z: vec![[0.0; BLOCK]; blocks],
+            resident: None,
         };
         for (i, p) in positions.enumerate() {
             let (b, o) = (i / BLOCK, i % BLOCK);
@@ -52,6 +56,19 @@ impl NodeCloud {
 
     pub fn is_empty(&self) -> bool {
         self.len == 0
+    }
+
+    pub fn position(&self, block: usize, offset: usize) -> [f32; 3] {
+        [self.x[block][offset], self.y[block][offset], self.z[block][offset]]
+    }
+
+    /// Evaluates fields over this cloud on the GPU from now on (the cloud must be uploaded there).
+    pub fn make_resident(&mut self, resident: Resident) {
+        self.resident = Some(resident);
+    }
+
+    pub fn resident(&self) -> Option<&Resident> {
+        self.resident.as_ref()
     }
 }
 
@@ -72,6 +89,18 @@ impl Kelvinlet {
             3 * cloud.len(),
             "output buffer does not match the node cloud"
         );
+        if let Some(r) = &cloud.resident {
+            match r.gpu.evaluate(self, r.cloud, coefficients, out) {
+                Ok(()) => return,
+                // The answer is still owed: the CPU gives the same field, a little later.
+                Err(e) => tracing::warn!("GPU prior failed, this request is evaluated on the CPU: {e}"),
+            }
+        }
+        self.evaluate_on_cpu(coefficients, cloud, out);
+    }
+
+    /// [`Self::evaluate`] on the CPU whatever the cloud's residence (reference and fallback).
+    pub fn evaluate_on_cpu(&self, coefficients: &Coefficients, cloud: &NodeCloud, out: &mut [f32]) {
         let constants = Constants {
             a: self.a as f32,
             b: self.b as f32,

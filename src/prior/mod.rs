@@ -4,9 +4,12 @@
 //! `(ΓᵀΓ + λI) k = Γᵀu` (f64, [`solve`]), and the field `u(x) = Σ_j Γ_j(x) k_j` is evaluated over
 //! the nodes in f32 by a vectorized, multi-core kernel ([`kernel`]).
 
+pub mod backend;
+pub mod gpu;
 pub mod kernel;
 pub mod solve;
 
+pub use backend::PriorBackend;
 pub use kernel::NodeCloud;
 pub use solve::{Coefficients, SolveError, Workspace};
 

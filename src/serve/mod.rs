@@ -16,6 +16,7 @@ pub use convert::{f32_bytes, grasp_message, response_rows, vec3_rows};
 pub use service::DeformationService;
 
 use crate::engine::{Engine, Limits};
+use crate::prior::PriorBackend;
 use crate::proto::v1::FILE_DESCRIPTOR_SET;
 use crate::proto::v1::deformation_server::DeformationServer;
 use crate::record::{Payload, RecordConfig, Recorder};
@@ -35,6 +36,8 @@ pub struct ServeConfig {
     pub green_linear: bool,
     /// Where its Green's functions are cached.
     pub cache_dir: Option<PathBuf>,
+    /// Where the Kelvinlet field is evaluated: cpu, gpu or auto.
+    pub prior_backend: PriorBackend,
     pub listen: SocketAddr,
     /// Largest grasp displacement accepted, in millimetres.
     pub max_displacement_mm: f64,
@@ -59,6 +62,7 @@ impl Default for ServeConfig {
             ort_dylib: None,
             green_linear: false,
             cache_dir: None,
+            prior_backend: PriorBackend::Cpu,
             listen: SocketAddr::from(([127, 0, 0, 1], 50051)),
             max_displacement_mm: limits.max_displacement_m * 1e3,
             max_interaction_points: limits.max_interaction_points,
