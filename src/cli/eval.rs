@@ -39,6 +39,7 @@ pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
     }
     let mut errors: BTreeMap<String, Vec<SampleError>> = BTreeMap::new();
     let mut failed = Vec::new();
+    let in_split = |s: &dataset::SampleRecord| args.split == "all" || s.split == args.split;
     // Long nonlinear runs are scored while they are still being generated: complete chunks only.
     let complete = dataset::complete_chunks(&args.data, info.chunks());
     let incomplete = complete.iter().filter(|&&c| !c).count();
@@ -47,7 +48,7 @@ pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
             dataset::read_chunk(&args.data, chunk, info.node_count).with_context(|| format!("chunk {chunk}"))?;
         let scored: Vec<(String, SampleError)> = samples
             .par_iter()
-            .filter(|(s, _)| (args.split == "all" || s.split == args.split) && !s.failed())
+            .filter(|(s, _)| in_split(s) && !s.failed())
             .map(|(sample, truth)| {
                 let request = Request {
                     model: args.model.clone(),
@@ -64,7 +65,7 @@ pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
         failed.extend(
             samples
                 .iter()
-                .filter(|(s, _)| (args.split == "all" || s.split == args.split) && s.failed())
+                .filter(|(s, _)| in_split(s) && s.failed())
                 .map(|(s, _)| s.index),
         );
         for (subset, e) in scored {

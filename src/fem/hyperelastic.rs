@@ -42,7 +42,7 @@ impl MooneyRivlin {
         if j <= 0.0 {
             return None;
         }
-        let (i1, i2) = invariants(f);
+        let (i1, i2) = invariants(&(f.transpose() * f));
         Some(
             self.c10 * (j.powf(-2.0 / 3.0) * i1 - 3.0)
                 + self.c01 * (j.powf(-4.0 / 3.0) * i2 - 3.0)
@@ -70,7 +70,7 @@ impl MooneyRivlin {
         let finv_t = f.try_inverse()?.transpose();
         let c = f.transpose() * f;
         let b = f * f.transpose();
-        let (i1, i2) = invariants(f);
+        let (i1, i2) = invariants(&c);
         let d_i1 = 2.0 * f;
         let d_i2 = 2.0 * (i1 * f - f * c);
         // (c J^a, a, g, ∂g/∂F) per isochoric term.
@@ -113,9 +113,8 @@ impl MooneyRivlin {
     }
 }
 
-/// I1 = tr C and I2 = ½((tr C)² − tr C²) of C = FᵀF.
-fn invariants(f: &Matrix3<f64>) -> (f64, f64) {
-    let c = f.transpose() * f;
+/// I1 = tr C and I2 = ½((tr C)² − tr C²) of the right Cauchy–Green tensor C = FᵀF.
+fn invariants(c: &Matrix3<f64>) -> (f64, f64) {
     let i1 = c.trace();
     (i1, 0.5 * (i1 * i1 - (c * c).trace()))
 }

@@ -55,19 +55,10 @@ pub fn attach(backend: PriorBackend, kelvinlet: &Kelvinlet, clouds: &mut [&mut N
         (Err(e), PriorBackend::Auto) => return Ok(format!("prior on the CPU: {e}")),
         (Err(e), _) => return Err(e),
     };
-    let mut resident: Vec<NodeCloud> = Vec::new();
-    for (index, cloud) in clouds.iter().enumerate() {
-        let mut copy = (**cloud).clone();
-        copy.make_resident(Resident {
-            gpu: gpu.clone(),
-            cloud: index,
-        });
-        resident.push(copy);
-    }
     let choice = if backend == PriorBackend::Gpu {
         format!("prior on the GPU {} (--prior-backend gpu)", gpu.adapter())
     } else {
-        let (cpu, gpu_time) = measure(kelvinlet, clouds[0], &resident[0])?;
+        let (cpu, gpu_time) = measure(kelvinlet, clouds[0], &gpu)?;
         let verdict = format!(
             "K = 20 over {} nodes: CPU {:.3} ms, GPU {} {:.3} ms",
             clouds[0].len(),
@@ -80,30 +71,33 @@ pub fn attach(backend: PriorBackend, kelvinlet: &Kelvinlet, clouds: &mut [&mut N
         }
         format!("prior on the GPU, faster at start-up ({verdict})")
     };
-    for (cloud, r) in clouds.iter_mut().zip(resident) {
-        **cloud = r;
+    for (index, cloud) in clouds.iter_mut().enumerate() {
+        cloud.make_resident(Resident {
+            gpu: gpu.clone(),
+            cloud: index,
+        });
     }
     Ok(choice)
 }
 
-/// Median time of one K = 20 field on the CPU and on the GPU (including upload and readback).
-fn measure(kelvinlet: &Kelvinlet, cpu_cloud: &NodeCloud, gpu_cloud: &NodeCloud) -> Result<(f64, f64), GpuError> {
+/// Median time of one K = 20 field over `cloud` on the CPU and on the GPU, where it was uploaded
+/// first (including upload of the points and readback).
+fn measure(kelvinlet: &Kelvinlet, cloud: &NodeCloud, gpu: &GpuPrior) -> Result<(f64, f64), GpuError> {
     let mut workspace = Workspace::default();
     kelvinlet
-        .solve(&probe(cpu_cloud), &mut workspace)
+        .solve(&probe(cloud), &mut workspace)
         .map_err(|e| GpuError::Run(e.to_string()))?;
     let c = &workspace.coefficients;
-    let mut out = vec![0.0f32; 3 * cpu_cloud.len()];
-    let cpu = median_seconds(21, || kelvinlet.evaluate_on_cpu(c, cpu_cloud, &mut out));
-    let resident = gpu_cloud.resident().ok_or(GpuError::Stopped)?;
+    let mut out = vec![0.0f32; 3 * cloud.len()];
+    let cpu = median_seconds(21, || kelvinlet.evaluate_on_cpu(c, cloud, &mut out));
     let mut failure = None;
-    let gpu = median_seconds(21, || {
-        if let Err(e) = resident.gpu.evaluate(kelvinlet, resident.cloud, c, &mut out) {
+    let on_gpu = median_seconds(21, || {
+        if let Err(e) = gpu.evaluate(kelvinlet, 0, c, &mut out) {
             failure = Some(e);
         }
     });
     match failure {
         Some(e) => Err(e),
-        None => Ok((cpu, gpu)),
+        None => Ok((cpu, on_gpu)),
     }
 }

@@ -66,10 +66,6 @@ impl NodeCloud {
     pub fn make_resident(&mut self, resident: Resident) {
         self.resident = Some(resident);
     }
-
-    pub fn resident(&self) -> Option<&Resident> {
-        self.resident.as_ref()
-    }
 }
 
 /// Kernel constants in f32.
