@@ -5,7 +5,8 @@
 //! [B, N, 3] (the full field, metres); its JSON lists each sample: global index, subset (`single` or
 //! `multi`), split (`train`, `val`, `test`), and its grasps (region, nodes, displacement). A chunk's
 //! JSON is written last, by rename, so a chunk with a JSON is complete: generation resumes by skipping
-//! those. Sample i is drawn from (seed, i), so a dataset is the same however often it was resumed,
+//! those. `mesh.safetensors` carries the mesh as nak loaded it (node order, lumped nodal volumes,
+//! surface nodes and normals, hash, prior), so training code reads the same geometry nak serves. Sample i is drawn from (seed, i), so a dataset is the same however often it was resumed,
 //! and the linear and nonlinear sets of one seed hold the same grasps.
 
 use std::path::{Path, PathBuf};
@@ -16,6 +17,7 @@ use serde::{Deserialize, Serialize};
 use super::{GraspSampler, SamplingError};
 use crate::engine::Grasp;
 use crate::fem::nonlinear::SolveStats;
+use crate::mesh::TetMesh;
 
 #[derive(Debug, thiserror::Error)]
 pub enum DatasetError {
@@ -200,6 +202,55 @@ pub fn write_info(dir: &Path, info: &DatasetInfo) -> Result<(), DatasetError> {
     let path = dir.join("dataset.json");
     let text = serde_json::to_string_pretty(info).map_err(|e| format(&path, e))?;
     std::fs::write(&path, text + "\n").map_err(io(&path))
+}
+
+/// Writes `mesh.safetensors`: `positions` f64 [N, 3], `nodal_volumes` f64 [N], `surface_nodes` u32 [S],
+/// `normals` f64 [N, 3]; metadata: name, content hash, the prior (ν, ε, λ) and the grasp neighbour range.
+pub fn write_mesh(dir: &Path, mesh: &TetMesh) -> Result<(), DatasetError> {
+    let path = dir.join("mesh.safetensors");
+    let positions: Vec<f64> = mesh.positions.as_flattened().to_vec();
+    let normals: Vec<f64> = mesh.normals.as_flattened().to_vec();
+    let n = mesh.node_count();
+    let views = [
+        (
+            "positions",
+            Dtype::F64,
+            vec![n, 3],
+            bytemuck::cast_slice::<f64, u8>(&positions),
+        ),
+        (
+            "nodal_volumes",
+            Dtype::F64,
+            vec![n],
+            bytemuck::cast_slice(&mesh.nodal_volumes),
+        ),
+        (
+            "surface_nodes",
+            Dtype::U32,
+            vec![mesh.surface_nodes.len()],
+            bytemuck::cast_slice(&mesh.surface_nodes),
+        ),
+        ("normals", Dtype::F64, vec![n, 3], bytemuck::cast_slice(&normals)),
+    ]
+    .into_iter()
+    .map(|(name, dtype, shape, data)| Ok((name, TensorView::new(dtype, shape, data).map_err(|e| format(&path, e))?)))
+    .collect::<Result<Vec<_>, DatasetError>>()?;
+    let prior = mesh.config.prior;
+    let (fewest, most) = mesh.config.sampling.neighbours;
+    let metadata = [
+        ("name", mesh.config.name.clone()),
+        ("content_hash", mesh.content_hash.clone()),
+        ("poisson_ratio", prior.poisson_ratio.to_string()),
+        ("epsilon_m", prior.epsilon.to_string()),
+        ("lambda", prior.lambda.to_string()),
+        ("neighbours_min", fewest.to_string()),
+        ("neighbours_max", most.to_string()),
+    ]
+    .into_iter()
+    .map(|(k, v)| (k.to_owned(), v))
+    .collect();
+    let bytes = safetensors::serialize(views, Some(metadata)).map_err(|e| format(&path, e))?;
+    std::fs::write(&path, bytes).map_err(io(&path))
 }
 
 /// The samples of one complete chunk and their fields ([N, 3] each).

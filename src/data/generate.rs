@@ -159,6 +159,7 @@ fn generate(
         });
     }
     dataset::write_info(dir, info)?;
+    dataset::write_mesh(dir, mesh)?;
     let sampler = GraspSampler::from_mesh(mesh)?;
     let complete = dataset::complete_chunks(dir, info.chunks());
     let total = info.total();
