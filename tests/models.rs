@@ -8,9 +8,12 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use common::server::TestServer;
+use nak::engine::DeformationModel;
 use nak::engine::{Engine, Grasp, Limits, Request, Selection};
+use nak::mesh::PriorParams;
 use nak::mesh::{self, MeshSource, TetMesh};
 use nak::model::{self, OnnxModel};
+use nak::prior::{InteractionPoints, Kelvinlet, NodeCloud, Workspace};
 use nak::proto::v1 as pb;
 use tonic::Code;
 
@@ -200,39 +203,88 @@ fn refuses_wrong_input_or_output_names_and_shapes() {
 }
 
 #[test]
-fn refuses_a_model_for_another_mesh_or_prior() {
+fn refuses_a_model_for_another_mesh_or_a_broken_manifest() {
     let (_root, dir) = copy_model("mlp-residual");
     let manifest = std::fs::read_to_string(dir.join("manifest.toml")).unwrap();
     let n = coarse().node_count();
-    std::fs::write(
-        dir.join("manifest.toml"),
-        manifest.replace(&format!("node_count = {n}"), "node_count = 9701"),
-    )
-    .unwrap();
-    let err = load_error(&dir);
+    let refused = |text: String| {
+        std::fs::write(dir.join("manifest.toml"), text).unwrap();
+        load_error(&dir)
+    };
+    let err = refused(manifest.replace(&format!("node_count = {n}"), "node_count = 9701"));
     assert!(err.contains("made for a mesh of 9701 nodes"), "{err}");
 
     let hash = coarse().content_hash.clone();
-    std::fs::write(dir.join("manifest.toml"), manifest.replace(&hash, &"0".repeat(64))).unwrap();
-    let err = load_error(&dir);
+    let err = refused(manifest.replace(&hash, &"0".repeat(64)));
     assert!(err.contains("made for mesh phantom-liver (0000"), "{err}");
 
-    let err = load_error(&test_models().join("faulty/wrong-prior/wrong-prior"));
-    assert!(
-        err.contains("must be served with the prior it was trained with"),
-        "{err}"
-    );
-
-    std::fs::write(
-        dir.join("manifest.toml"),
-        manifest.replace("mode = \"residual\"", "mode = \"both\""),
-    )
-    .unwrap();
-    let err = load_error(&dir);
+    let err = refused(manifest.replace("mode = \"residual\"", "mode = \"both\""));
     assert!(
         err.contains("manifest.toml") && err.contains("unknown variant `both`"),
         "{err}"
     );
+
+    // A residual network is served as prior + output: Method 2 (reg) is a direct model.
+    let err = refused(manifest.replace("method = \"res\"", "method = \"reg\""));
+    assert!(err.contains("model.method = Reg is served in mode Direct"), "{err}");
+
+    let err = refused(manifest.replace("epsilon_m = 0.05", "epsilon_m = -0.02"));
+    assert!(err.contains("expected 0 < poisson_ratio < 0.5, epsilon_m > 0"), "{err}");
+}
+
+/// A network is served with the prior it was trained with, whatever the mesh's prior is: the same
+/// graph under a manifest with ε = 3 cm moves by exactly the difference of the two Kelvinlet fields.
+#[test]
+fn each_model_is_served_with_its_own_prior() {
+    let mesh = coarse();
+    let (_root, dir) = copy_model("mlp-residual");
+    let manifest = std::fs::read_to_string(dir.join("manifest.toml")).unwrap();
+    std::fs::write(
+        dir.join("manifest.toml"),
+        manifest
+            .replace("epsilon_m = 0.05", "epsilon_m = 0.03")
+            .replace("name = \"mlp-residual\"", "name = \"mlp-residual-eps3\""),
+    )
+    .unwrap();
+    let mut engine = engine_with_models(mesh.clone());
+    let own = OnnxModel::load(&dir, &mesh, ort()).unwrap();
+    assert_eq!(own.info().metadata["prior.epsilon_m"], "0.03");
+    engine.add_model(Arc::new(own));
+    let at_3cm = predict(&engine, "mlp-residual-eps3", Selection::All);
+    let at_5cm = predict(&engine, "mlp-residual", Selection::All);
+
+    let kelvinlet = |epsilon: f64| {
+        let prior = Kelvinlet::new(PriorParams {
+            epsilon,
+            ..mesh.config.prior
+        });
+        let mut points = InteractionPoints::default();
+        for g in two_graspers(&mesh) {
+            for &n in &g.nodes {
+                points.push(n, mesh.positions[n as usize], g.displacement);
+            }
+        }
+        let mut workspace = Workspace::default();
+        prior.solve(&points, &mut workspace).unwrap();
+        let mut field = vec![0.0f32; 3 * mesh.node_count()];
+        prior.evaluate(
+            &workspace.coefficients,
+            &NodeCloud::new(mesh.positions.iter().copied()),
+            &mut field,
+        );
+        field
+    };
+    let (k3, k5) = (kelvinlet(0.03), kelvinlet(0.05));
+    let scale = k5.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+    for i in 0..at_3cm.len() {
+        let expected = at_5cm[i] - k5[i] + k3[i];
+        assert!(
+            (at_3cm[i] - expected).abs() <= 1e-5 * scale,
+            "row {}: {} vs {expected}",
+            i / 3,
+            at_3cm[i]
+        );
+    }
 }
 
 #[tokio::test]

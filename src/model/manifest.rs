@@ -17,6 +17,28 @@ pub enum Mode {
     Direct,
 }
 
+/// How the network was trained: the paper's Base, Method 1 (+Res) or Method 2 (+Reg).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Method {
+    /// Regresses the field directly from FEM data.
+    Base,
+    /// Learns the residual to the Kelvinlet prior; served as prior + output.
+    Res,
+    /// Regresses the field directly, trained with a Kelvinlet regularization term.
+    Reg,
+}
+
+impl Method {
+    /// The serving mode this method implies.
+    pub fn mode(self) -> Mode {
+        match self {
+            Method::Res => Mode::Residual,
+            Method::Base | Method::Reg => Mode::Direct,
+        }
+    }
+}
+
 /// Input channel groups, in the order they appear in `features`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -54,6 +76,7 @@ pub struct Manifest {
 pub struct ModelSection {
     pub name: String,
     pub mode: Mode,
+    pub method: Method,
     pub regime: String,
     pub inputs: Vec<Channel>,
     #[serde(default)]
@@ -94,6 +117,30 @@ impl Manifest {
                 ),
             ));
         }
+        let method = manifest.model.method;
+        if method.mode() != manifest.model.mode {
+            return Err(ModelLoadError::new(
+                origin,
+                format!(
+                    "model.method = {method:?} is served in mode {:?}, but model.mode = {:?}",
+                    method.mode(),
+                    manifest.model.mode
+                ),
+            ));
+        }
+        let prior = manifest.prior;
+        let valid = prior.poisson_ratio > 0.0
+            && prior.poisson_ratio < 0.5
+            && prior.epsilon > 0.0
+            && prior.epsilon.is_finite()
+            && prior.lambda >= 0.0
+            && prior.lambda.is_finite();
+        if !valid {
+            return Err(ModelLoadError::new(
+                origin,
+                format!("prior {prior:?}: expected 0 < poisson_ratio < 0.5, epsilon_m > 0 and lambda >= 0"),
+            ));
+        }
         Ok(manifest)
     }
 
@@ -106,7 +153,8 @@ impl Manifest {
         self.model.inputs.contains(&Channel::Prior)
     }
 
-    /// Refuses a model made for another mesh or another prior.
+    /// Refuses a model made for another mesh. The prior is the model's own (it is served with the
+    /// parameters it was trained with), so it may differ from the mesh's.
     pub fn check_against(&self, mesh: &TetMesh, origin: &str) -> Result<(), ModelLoadError> {
         if self.mesh.node_count != mesh.node_count() {
             return Err(ModelLoadError::new(
@@ -125,16 +173,6 @@ impl Manifest {
                 format!(
                     "made for mesh {} ({}); the served mesh {:?} is {}",
                     self.mesh.name, self.mesh.content_hash, mesh.config.name, mesh.content_hash
-                ),
-            ));
-        }
-        if self.prior != mesh.config.prior {
-            return Err(ModelLoadError::new(
-                origin,
-                format!(
-                    "trained with the prior {:?}; the mesh's prior is {:?}: a network must be served with \
-                     the prior it was trained with",
-                    self.prior, mesh.config.prior
                 ),
             ));
         }

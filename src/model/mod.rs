@@ -3,10 +3,11 @@
 pub mod manifest;
 pub mod onnx;
 pub mod runtime;
+pub mod shipped;
 
 use std::path::{Path, PathBuf};
 
-pub use manifest::{Channel, Manifest, Mode};
+pub use manifest::{Channel, Manifest, Method, Mode};
 pub use onnx::OnnxModel;
 
 use crate::mesh::TetMesh;

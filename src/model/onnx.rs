@@ -49,15 +49,27 @@ pub struct OnnxModel {
 impl OnnxModel {
     /// Loads `dir/model.onnx` under `dir/manifest.toml`, validates both against `mesh`, warms up.
     pub fn load(dir: &Path, mesh: &TetMesh, ort_dylib: Option<&Path>) -> Result<Self, ModelLoadError> {
-        let origin = dir.display().to_string();
         let manifest_path = dir.join("manifest.toml");
         let text = std::fs::read_to_string(&manifest_path)
             .map_err(|e| ModelLoadError::new(&manifest_path.display().to_string(), e.to_string()))?;
-        let manifest = Manifest::parse(&text, &manifest_path.display().to_string())?;
-        manifest.check_against(mesh, &origin)?;
         let onnx_path = dir.join("model.onnx");
         let onnx = std::fs::read(&onnx_path)
             .map_err(|e| ModelLoadError::new(&onnx_path.display().to_string(), e.to_string()))?;
+        Self::from_parts(&dir.display().to_string(), &text, &onnx, mesh, ort_dylib)
+    }
+
+    /// Builds a model from a manifest's text and a graph's bytes; `origin` names them in errors
+    /// (`origin/manifest.toml`, `origin/model.onnx`).
+    pub fn from_parts(
+        origin: &str,
+        manifest_text: &str,
+        onnx: &[u8],
+        mesh: &TetMesh,
+        ort_dylib: Option<&Path>,
+    ) -> Result<Self, ModelLoadError> {
+        let manifest = Manifest::parse(manifest_text, &format!("{origin}/manifest.toml"))?;
+        manifest.check_against(mesh, origin)?;
+        let onnx_path = format!("{origin}/model.onnx");
         let environment = super::runtime::environment(ort_dylib)?;
         let session = Session::builder(environment)
             .and_then(|b| {
@@ -66,15 +78,10 @@ impl OnnxModel {
             })
             .and_then(|b| b.with_intra_threads(threads()).map_err(Into::into))
             .and_then(|b| b.with_intra_op_spinning(false).map_err(Into::into))
-            .and_then(|mut b| b.commit_from_memory(&onnx))
-            .map_err(|e| {
-                ModelLoadError::new(
-                    &onnx_path.display().to_string(),
-                    format!("ONNX Runtime cannot load it: {e}"),
-                )
-            })?;
+            .and_then(|mut b| b.commit_from_memory(onnx))
+            .map_err(|e| ModelLoadError::new(&onnx_path, format!("ONNX Runtime cannot load it: {e}")))?;
         let n = mesh.node_count();
-        check_signature(&session, manifest.channels(), n, &onnx_path.display().to_string())?;
+        check_signature(&session, manifest.channels(), n, &onnx_path)?;
 
         let channels = manifest.channels();
         let mut template = vec![0.0f32; n * channels];
@@ -85,6 +92,11 @@ impl OnnxModel {
         }
         let mut metadata: BTreeMap<String, String> = BTreeMap::new();
         metadata.insert("mode".into(), format!("{:?}", manifest.model.mode).to_lowercase());
+        metadata.insert("method".into(), format!("{:?}", manifest.model.method).to_lowercase());
+        let prior = manifest.prior;
+        metadata.insert("prior.poisson_ratio".into(), prior.poisson_ratio.to_string());
+        metadata.insert("prior.epsilon_m".into(), prior.epsilon.to_string());
+        metadata.insert("prior.lambda".into(), prior.lambda.to_string());
         metadata.insert("inputs".into(), format!("{:?}", manifest.model.inputs).to_lowercase());
         metadata.insert("description".into(), manifest.model.description.clone());
         for (section, values) in [("metrics", &manifest.metrics), ("provenance", &manifest.provenance)] {
@@ -104,7 +116,7 @@ impl OnnxModel {
             reads_prior: manifest.reads_prior(),
             channels,
             node_count: n,
-            prior: Kelvinlet::new(mesh.config.prior),
+            prior: Kelvinlet::new(manifest.prior),
             all_nodes: NodeCloud::new(mesh.positions.iter().copied()),
             session: Mutex::new(session),
             template,
@@ -112,7 +124,7 @@ impl OnnxModel {
         };
         model
             .warm_up()
-            .map_err(|e| ModelLoadError::new(&origin, format!("warm-up failed: {e}")))?;
+            .map_err(|e| ModelLoadError::new(origin, format!("warm-up failed: {e}")))?;
         Ok(model)
     }
 
