@@ -1,6 +1,7 @@
 //! Generates the gRPC code for proto/ without a system protoc: protox parses the .proto files in
 //! Rust, tonic-prost-build generates from its descriptors. The descriptor set is also written for
-//! gRPC server reflection and for MCAP schemas.
+//! gRPC server reflection and for MCAP schemas. The networks shipped with the phantom liver
+//! (models/phantom-liver/<name>/{manifest.toml, model.onnx}) are embedded beside it.
 
 use std::path::PathBuf;
 
@@ -32,5 +33,32 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .build_server(false)
         .bytes(".")
         .compile_fds(foxglove.file_descriptor_set())?;
+    embed_shipped_models(&out_dir)
+}
+
+/// Writes `embedded_models.rs`: one (name, manifest, graph) entry per shipped model directory.
+fn embed_shipped_models(out_dir: &std::path::Path) -> Result<(), Box<dyn std::error::Error>> {
+    let root = PathBuf::from(std::env::var("CARGO_MANIFEST_DIR")?).join("models/phantom-liver");
+    println!("cargo:rerun-if-changed={}", root.display());
+    let mut dirs: Vec<PathBuf> = std::fs::read_dir(&root)?
+        .filter_map(Result::ok)
+        .map(|e| e.path())
+        .filter(|p| p.join("manifest.toml").is_file() && p.join("model.onnx").is_file())
+        .collect();
+    dirs.sort();
+    let mut code = String::from("pub const SHIPPED: &[ShippedModel] = &[\n");
+    for dir in dirs {
+        let name = dir
+            .file_name()
+            .and_then(|n| n.to_str())
+            .ok_or("model directory name is not UTF-8")?;
+        code.push_str(&format!(
+            "    ShippedModel {{ name: {name:?}, manifest: include_str!({:?}), onnx: include_bytes!({:?}) }},\n",
+            dir.join("manifest.toml"),
+            dir.join("model.onnx")
+        ));
+    }
+    code.push_str("];\n");
+    std::fs::write(out_dir.join("embedded_models.rs"), code)?;
     Ok(())
 }

@@ -252,6 +252,9 @@ fn build_engine(config: &ServeConfig) -> anyhow::Result<Engine> {
         .use_prior_backend(config.prior_backend)
         .context("cannot use the GPU prior (--prior-backend gpu); `auto` falls back to the CPU")?;
     info!("{choice}");
+    if config.mesh.is_none() {
+        load_shipped_models(&mut engine, &mesh, config.ort_dylib.as_deref())?;
+    }
     for root in config.model_roots() {
         let models = nak::model::load_all(&root, &mesh, config.ort_dylib.as_deref())
             .with_context(|| format!("cannot load the models in {}", root.display()))?;
@@ -264,6 +267,25 @@ fn build_engine(config: &ServeConfig) -> anyhow::Result<Engine> {
         engine.add_model(Arc::new(green_linear(&mesh, config)?));
     }
     Ok(engine)
+}
+
+/// The networks shipped with the embedded phantom. Without ONNX Runtime the server still starts and
+/// serves the prior, saying what it left out and how to get it.
+fn load_shipped_models(engine: &mut Engine, mesh: &TetMesh, ort_dylib: Option<&Path>) -> anyhow::Result<()> {
+    let shipped = nak::model::shipped::SHIPPED;
+    if shipped.is_empty() {
+        return Ok(());
+    }
+    if let Err(e) = nak::model::runtime::locate(ort_dylib) {
+        let names: Vec<&str> = shipped.iter().map(|m| m.name).collect();
+        tracing::warn!("the shipped networks {names:?} are not served: {e}");
+        return Ok(());
+    }
+    for model in nak::model::shipped::load(mesh, ort_dylib).context("cannot load the shipped networks")? {
+        info!(model = %model.info().name, "shipped model loaded and warmed up");
+        engine.add_model(Arc::new(model));
+    }
+    Ok(())
 }
 
 /// Loads green-linear's Green's functions from the cache, computing them with a progress bar first.

@@ -1,5 +1,6 @@
 //! Loading ONNX Runtime itself: the shared library from the PyPI wheel (DESIGN.md §9), located by
-//! `--ort-dylib` or `ORT_DYLIB_PATH`, loaded once per process.
+//! `--ort-dylib`, `ORT_DYLIB_PATH`, or in the `.venv` of the working directory (where
+//! scripts/setup-python puts the wheel when run from a checkout), and loaded once per process.
 
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
@@ -13,16 +14,18 @@ pub const ORT_VERSION: &str = "1.31.1";
 
 static ENVIRONMENT: OnceLock<Result<Environment, String>> = OnceLock::new();
 
-/// Where the library is: the explicit path if given, else `ORT_DYLIB_PATH`.
+/// Where the library is: the explicit path if given, else `ORT_DYLIB_PATH`, else the wheel in
+/// `./.venv`.
 pub fn locate(explicit: Option<&Path>) -> Result<PathBuf, ModelLoadError> {
     let path = explicit
         .map(Path::to_path_buf)
         .or_else(|| std::env::var_os("ORT_DYLIB_PATH").map(PathBuf::from))
+        .or_else(in_project_venv)
         .ok_or_else(|| {
             ModelLoadError::runtime(format!(
-                "ONNX Runtime {ORT_VERSION} is needed to serve ONNX models but was not configured: set \
-                 ORT_DYLIB_PATH or pass --ort-dylib to libonnxruntime.so.{ORT_VERSION} (from `pip install \
-                 onnxruntime=={ORT_VERSION}`; scripts/onnxruntime-path prints it)"
+                "ONNX Runtime {ORT_VERSION} is needed to serve ONNX models but was not found: run \
+                 scripts/setup-python (it installs it into .venv), or set ORT_DYLIB_PATH or pass --ort-dylib \
+                 to libonnxruntime.so.{ORT_VERSION} (from `pip install onnxruntime=={ORT_VERSION}`)"
             ))
         })?;
     if !path.is_file() {
@@ -32,6 +35,23 @@ pub fn locate(explicit: Option<&Path>) -> Result<PathBuf, ModelLoadError> {
         )));
     }
     Ok(path)
+}
+
+fn in_project_venv() -> Option<PathBuf> {
+    let mut pythons: Vec<PathBuf> = std::fs::read_dir(".venv/lib")
+        .ok()?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .collect();
+    pythons.sort();
+    pythons
+        .into_iter()
+        .map(|p| {
+            p.join(format!(
+                "site-packages/onnxruntime/capi/libonnxruntime.so.{ORT_VERSION}"
+            ))
+        })
+        .find(|p| p.is_file())
+        .and_then(|p| std::path::absolute(p).ok())
 }
 
 /// The process-wide ONNX Runtime environment, loading the library on first use.

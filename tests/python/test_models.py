@@ -66,7 +66,7 @@ def test_served_field_matches_onnxruntime(coarse_server: str, name: str) -> None
     assert relative < 1e-5, f"{name}: relative difference {relative:.2e}"
 
 
-def test_serving_models_without_onnxruntime_names_what_is_missing(nak_binary: Path) -> None:
+def test_serving_models_without_onnxruntime_names_what_is_missing(nak_binary: Path, tmp_path: Path) -> None:
     result = subprocess.run(
         [
             str(nak_binary),
@@ -79,9 +79,11 @@ def test_serving_models_without_onnxruntime_names_what_is_missing(nak_binary: Pa
             str(MODELS),
         ],
         env={"PATH": "/usr/bin:/bin", "RUST_BACKTRACE": "0"},
+        cwd=tmp_path,  # away from the checkout's .venv, where nak would find ONNX Runtime by itself
         capture_output=True,
         text=True,
         timeout=60,
     )
     assert result.returncode != 0
     assert "ORT_DYLIB_PATH" in result.stderr and "onnxruntime==1.31.1" in result.stderr, result.stderr
+    assert "scripts/setup-python" in result.stderr, result.stderr

@@ -1,0 +1,25 @@
+//! The networks shipped with the embedded phantom liver (`models/phantom-liver/<name>/`), compiled
+//! into the binary so that `nak serve` answers with them wherever it runs.
+
+use super::{ModelLoadError, OnnxModel};
+use crate::mesh::TetMesh;
+
+/// One shipped model: its directory name, manifest and graph.
+pub struct ShippedModel {
+    pub name: &'static str,
+    pub manifest: &'static str,
+    pub onnx: &'static [u8],
+}
+
+include!(concat!(env!("OUT_DIR"), "/embedded_models.rs"));
+
+/// Loads every shipped model for `mesh` (the embedded phantom).
+pub fn load(mesh: &TetMesh, ort_dylib: Option<&std::path::Path>) -> Result<Vec<OnnxModel>, ModelLoadError> {
+    SHIPPED
+        .iter()
+        .map(|m| {
+            let origin = format!("embedded:{}/{}", crate::mesh::EMBEDDED_NAME, m.name);
+            OnnxModel::from_parts(&origin, m.manifest, m.onnx, mesh, ort_dylib)
+        })
+        .collect()
+}
