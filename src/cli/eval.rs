@@ -1,4 +1,5 @@
-//! `nak eval`: DCM of a model on a dataset split, per subset, on screen and as JSON.
+//! `nak eval`: DCM of a model on a dataset split, per subset, on screen and as JSON, and the time
+//! the serving engine takes per request, measured one request at a time after the scoring pass.
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -23,6 +24,60 @@ pub struct EvalArgs {
     /// Write the results as JSON here.
     #[arg(long)]
     output: Option<PathBuf>,
+    /// Requests of the split timed one at a time after scoring (0: no timing).
+    #[arg(long, default_value_t = 200)]
+    latency_samples: usize,
+}
+
+/// Per-stage engine time of requests run one at a time (no other request competing for the cores).
+#[derive(serde::Serialize)]
+struct Latency {
+    requests: usize,
+    total: Percentiles,
+    prior: Percentiles,
+    network: Percentiles,
+}
+
+#[derive(serde::Serialize)]
+struct Percentiles {
+    p50: f64,
+    p90: f64,
+    p99: f64,
+}
+
+impl Percentiles {
+    fn of(mut values: Vec<f64>) -> Self {
+        values.sort_by(f64::total_cmp);
+        let at = |q: f64| values[((values.len() - 1) as f64 * q).round() as usize];
+        Percentiles {
+            p50: at(0.5),
+            p90: at(0.9),
+            p99: at(0.99),
+        }
+    }
+}
+
+/// Times `requests` through the engine one at a time, after a few untimed warm-up requests.
+fn time_requests(engine: &Engine, requests: &[Request]) -> Result<Option<Latency>, nak::engine::EngineError> {
+    if requests.is_empty() {
+        return Ok(None);
+    }
+    for request in requests.iter().cycle().take(10) {
+        engine.predict(request)?;
+    }
+    let (mut total, mut prior, mut network) = (Vec::new(), Vec::new(), Vec::new());
+    for request in requests {
+        let t = engine.predict(request)?.timing;
+        total.push(f64::from(t.total_us));
+        prior.push(f64::from(t.prior_us));
+        network.push(f64::from(t.network_us));
+    }
+    Ok(Some(Latency {
+        requests: requests.len(),
+        total: Percentiles::of(total),
+        prior: Percentiles::of(prior),
+        network: Percentiles::of(network),
+    }))
 }
 
 pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
@@ -39,6 +94,7 @@ pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
     }
     let mut errors: BTreeMap<String, Vec<SampleError>> = BTreeMap::new();
     let mut failed = Vec::new();
+    let mut timed: Vec<Request> = Vec::new();
     let in_split = |s: &dataset::SampleRecord| args.split == "all" || s.split == args.split;
     // Long nonlinear runs are scored while they are still being generated: complete chunks only.
     let complete = dataset::complete_chunks(&args.data, info.chunks());
@@ -46,16 +102,24 @@ pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
     for chunk in (0..info.chunks()).filter(|&c| complete[c]) {
         let samples =
             dataset::read_chunk(&args.data, chunk, info.node_count).with_context(|| format!("chunk {chunk}"))?;
+        let request_of = |sample: &dataset::SampleRecord| Request {
+            model: args.model.clone(),
+            grasps: sample.grasps(),
+            ..Request::default()
+        };
+        let wanted = args.latency_samples.saturating_sub(timed.len());
+        timed.extend(
+            samples
+                .iter()
+                .filter(|(s, _)| in_split(s) && !s.failed())
+                .take(wanted)
+                .map(|(s, _)| request_of(s)),
+        );
         let scored: Vec<(String, SampleError)> = samples
             .par_iter()
             .filter(|(s, _)| in_split(s) && !s.failed())
             .map(|(sample, truth)| {
-                let request = Request {
-                    model: args.model.clone(),
-                    grasps: sample.grasps(),
-                    ..Request::default()
-                };
-                let prediction = engine.predict(&request)?;
+                let prediction = engine.predict(&request_of(sample))?;
                 Ok((
                     sample.subset.clone(),
                     dcm::sample_error(truth, &prediction.displacements, &mesh.nodal_volumes),
@@ -99,19 +163,33 @@ pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
             failed.len()
         );
     }
-    println!("  subset      samples   DCM %   DCM nodal %   mean err   median err   max err");
+    println!("  subset      samples   DCM %   DCM nodal %   DCM code %   mean err   median err   max err");
     for subset in ["single", "multi", "combined"] {
         if let Some(s) = results.get(subset) {
             println!(
-                "  {:<10} {:>8}  {:>6.2}  {:>12.2}  {:>9.4}  {:>11.4}  {:>8.4}",
-                subset, s.samples, s.dcm, s.dcm_nodal, s.mean_error, s.median_error, s.max_error
+                "  {:<10} {:>8}  {:>6.2}  {:>12.2}  {:>11.2}  {:>9.4}  {:>11.4}  {:>8.4}",
+                subset, s.samples, s.dcm, s.dcm_nodal, s.dcm_code, s.mean_error, s.median_error, s.max_error
             );
         }
+    }
+    println!("  (DCM: volume-weighted, DESIGN.md §6; code: the paper's code form, comparable with its tables)");
+    let latency = time_requests(engine, &timed)?;
+    if let Some(l) = &latency {
+        println!(
+            "  engine time per request, {} requests one at a time: total p50 {:.3} ms (p90 {:.3}), \
+             prior p50 {:.3} ms, network p50 {:.3} ms",
+            l.requests,
+            l.total.p50 / 1e3,
+            l.total.p90 / 1e3,
+            l.prior.p50 / 1e3,
+            l.network.p50 / 1e3
+        );
     }
     if let Some(path) = &args.output {
         let json = serde_json::json!({
             "model": args.model, "data": args.data, "split": args.split, "regime": info.regime,
             "mesh_hash": info.mesh_hash, "subsets": results, "failed_samples": failed,
+            "latency_us": latency, "threads": rayon::current_num_threads(),
         });
         std::fs::write(path, serde_json::to_string_pretty(&json)? + "\n")
             .with_context(|| format!("cannot write {}", path.display()))?;
