@@ -1,0 +1,233 @@
+"""The training package (training/nak_training) against nak itself: its Kelvinlet equals the served
+prior, its datasets are nak's own files, bad input is refused by name, an interrupted run resumes to the
+same weights, and a tiny end-to-end run (datagen → train → export → nak serve) serves what onnxruntime
+computes and beats the untrained network."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import tomllib
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import client
+import grpc
+import numpy as np
+import onnxruntime
+import pytest
+import torch
+from conftest import ROOT, start_server
+from nak_training.config import load_config, parse_config
+from nak_training.dataset import open_dataset
+from nak_training.errors import TrainingInputError
+from nak_training.evaluate import evaluate, nak_eval
+from nak_training.export import export
+from nak_training.kelvinlet import Prior, pad_points
+from nak_training.models import Grasped, build
+from nak_training.train import Trainer
+
+COARSE = ROOT / "models" / "phantom-liver" / "liver-coarse.msh"
+
+
+@pytest.fixture(scope="module")
+def coarse_data(nak_binary: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A small linear dataset on the coarse phantom, as `nak datagen` writes it."""
+    out = tmp_path_factory.mktemp("data") / "coarse"
+    command = [str(nak_binary), "datagen", "--mesh", str(COARSE), "--regime", "linear", "--single", "60"]
+    command += ["--multi", "40", "--seed", "3", "--out", str(out), "--chunk-size", "50"]
+    subprocess.run(command, check=True, capture_output=True)
+    return out
+
+
+def tiny_config(**overrides: Any) -> dict[str, Any]:
+    values = dict(name="tiny", architecture="pointnet", method="res", epsilon=0.02, steps=6, batch=4)
+    values.update(query_nodes=256, val_every=3, val_samples=8, threads=2, lr=3e-3)
+    return {**values, **overrides}
+
+
+def quiet(_: str) -> None:
+    pass
+
+
+def test_python_prior_equals_the_served_prior(nak_binary: Path, coarse_data: Path) -> None:
+    mesh = open_dataset(coarse_data).mesh
+    prior = Prior(*mesh.prior)
+    pb, rpc = client.load_stubs()
+    with start_server(nak_binary, ["--mesh", str(COARSE)]) as address, grpc.insecure_channel(address) as channel:
+        stub = rpc.DeformationStub(channel)
+        sets = {s.name: list(s.nodes) for s in stub.GetMesh(pb.GetMeshRequest()).node_sets}
+        cases = [
+            [(sets["grasp_02"][:1], (0.0, 0.03, 0.0))],
+            [(sets["grasp_05"][:6], (0.02, -0.01, 0.04))],
+            [(sets["grasp_03"][:8], (0.01, 0.03, -0.01)), (sets["grasp_08"][:5], (-0.05, 0.02, 0.015))],
+        ]
+        for grasps in cases:
+            request = pb.PredictRequest(
+                model="kelvinlet",
+                grasps=[pb.Grasp(nodes=n, displacement=pb.Vec3(x=u[0], y=u[1], z=u[2])) for n, u in grasps],
+            )
+            served = np.frombuffer(stub.Predict(request).displacements, dtype="<f4").reshape(-1, 3)
+            nodes = torch.tensor([n for ns, _ in grasps for n in ns])
+            disp = torch.tensor([u for ns, u in grasps for _ in ns], dtype=torch.float64)
+            _, points, u, mask = pad_points(mesh.positions, [nodes], [disp])
+            ours = prior.evaluate(mesh.positions, points, u, mask)[0].numpy()
+            relative = np.linalg.norm(ours - served) / np.linalg.norm(served)
+            assert relative < 1e-5, f"{len(nodes)} points: relative difference {relative:.2e}"
+
+
+def test_split_forward_equals_the_full_forward_for_every_row_wise_network() -> None:
+    torch.manual_seed(0)
+    n, b, k = 300, 3, 6
+    rest = torch.randn(n, 7)
+    rest[:, 3:] = 0
+    ids = torch.stack([torch.randperm(n)[:k] for _ in range(b)])
+    mask = torch.ones(b, k, dtype=torch.bool)
+    mask[1, 4:] = False
+    ids[1, 4:] = ids[1, 0]  # padding repeats a real row, as pad_points does
+    dense = rest.expand(b, -1, -1).clone()
+    for i in range(b):
+        real = ids[i, : int(mask[i].sum())]
+        dense[i, real, 3:6] = torch.randn(len(real), 3)
+        dense[i, real, 6] = 1.0
+    rows = dense.gather(1, ids.unsqueeze(-1).expand(-1, -1, 7))
+    for architecture in ("pointnet", "deepset", "isab"):
+        model = build(architecture, "cpu").eval()
+        assert model.row_wise
+        full, _ = model.forward_normalized(dense)
+        split = model.forward_split(rest, rows, Grasped(ids, mask), dense)
+        assert torch.allclose(full, split, atol=1e-5), architecture
+    for architecture in ("pointnet", "deepset", "isab"):
+        model = build(architecture, "paper").eval()
+        out, _ = model.forward_normalized(dense[:1])
+        assert out.shape == (1, n, 3)
+
+
+def test_bad_input_is_refused_naming_the_file_or_key(coarse_data: Path, tmp_path: Path) -> None:
+    with pytest.raises(TrainingInputError, match=r"architecture = 'transformer': expected one of"):
+        parse_config(tiny_config(architecture="transformer"), "x.toml")
+    with pytest.raises(TrainingInputError, match=r"unknown key\(s\) \['learning_rate'\]"):
+        parse_config(tiny_config(learning_rate=1.0), "x.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text('name = "x"\narchitecture = "pointnet"\nmethod = "res"\nepsilon = "large"\n')
+    with pytest.raises(TrainingInputError, match=r"bad.toml: epsilon = 'large'"):
+        load_config(bad)
+
+    data = tmp_path / "data"
+    shutil.copytree(coarse_data, data)
+    dataset = open_dataset(data)
+    with pytest.raises(TrainingInputError, match=r"unknown split 'holdout'"):
+        dataset.load("holdout")
+    chunk = data / "chunk-00001.safetensors"
+    chunk.write_bytes(chunk.read_bytes()[:1000])
+    with pytest.raises(TrainingInputError, match=r"chunk-00001.safetensors: unreadable chunk"):
+        dataset.load("train")
+    (data / "chunk-00000.json").unlink()
+    (data / "chunk-00001.json").unlink()
+    with pytest.raises(TrainingInputError, match=r"no complete samples in split 'train'"):
+        dataset.load("train")
+
+    other = tmp_path / "other"
+    shutil.copytree(coarse_data, other)
+    info = (other / "dataset.json").read_text()
+    mesh_hash = open_dataset(coarse_data).mesh.content_hash
+    (other / "dataset.json").write_text(info.replace(mesh_hash, "0" * 64))
+    with pytest.raises(TrainingInputError, match=r"mesh.safetensors: mesh phantom-liver .* is not the dataset's"):
+        open_dataset(other)
+
+
+def test_an_interrupted_run_resumes_to_the_same_weights(coarse_data: Path, tmp_path: Path) -> None:
+    dataset = open_dataset(coarse_data)
+    config = parse_config(tiny_config(method="reg"), "tiny")
+    straight = tmp_path / "straight"
+    straight.mkdir()
+    Trainer(config, dataset, straight, log=quiet).run()
+
+    class Interrupt(Exception):
+        pass
+
+    def stop_after_first_checkpoint(message: str) -> None:
+        if "val DCM" in message:
+            raise Interrupt
+
+    resumed = tmp_path / "resumed"
+    resumed.mkdir()
+    with pytest.raises(Interrupt):
+        Trainer(config, dataset, resumed, log=stop_after_first_checkpoint).run()
+    messages: list[str] = []
+    Trainer(config, dataset, resumed, log=messages.append).run()
+    assert any("resumed at step 3" in m for m in messages), messages
+    a = torch.load(straight / "checkpoint.pt", weights_only=False)["model"]
+    b = torch.load(resumed / "checkpoint.pt", weights_only=False)["model"]
+    for key in a:
+        assert torch.allclose(a[key], b[key], atol=1e-6), key
+
+    other = parse_config(tiny_config(method="reg", batch=5), "tiny")
+    with pytest.raises(TrainingInputError, match=r"checkpoint.pt: was written with another configuration"):
+        Trainer(other, dataset, resumed, log=quiet)
+
+
+@pytest.fixture(scope="module")
+def exported(coarse_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Path, Path]]:
+    """A trained and an untrained +Res PointNet exported from the coarse dataset: (models root, runs)."""
+    dataset = open_dataset(coarse_data)
+    runs = tmp_path_factory.mktemp("runs")
+    models = tmp_path_factory.mktemp("models")
+    for name, steps, lr in [("tiny-trained", 150, 3e-3), ("tiny-untrained", 1, 1e-12)]:
+        config = parse_config(tiny_config(name=name, steps=steps, lr=lr, val_every=50, batch=8), "tiny")
+        (runs / name).mkdir()
+        Trainer(config, dataset, runs / name, log=quiet).run()
+        export(config, dataset, runs / name, models, log=quiet)
+    yield models, runs
+
+
+def test_exported_models_are_served_as_onnxruntime_computes_them(
+    nak_binary: Path, coarse_data: Path, exported: tuple[Path, Path]
+) -> None:
+    models, _ = exported
+    manifest = tomllib.loads((models / "tiny-trained" / "manifest.toml").read_text())
+    assert manifest["model"]["method"] == "res" and manifest["model"]["mode"] == "residual"
+    assert manifest["prior"]["epsilon_m"] == 0.02
+    assert manifest["provenance"]["dataset_seed"] == 3 and manifest["provenance"]["steps"] == 150
+    assert (models / "tiny-trained" / "config.toml").is_file()
+    dataset = open_dataset(coarse_data)
+    sample = dataset.load("test").samples[0]
+    pb, rpc = client.load_stubs()
+    args = ["--mesh", str(COARSE), "--models", str(models)]
+    with start_server(nak_binary, args) as address, grpc.insecure_channel(address) as channel:
+        stub = rpc.DeformationStub(channel)
+        listed = {m.name: dict(m.metadata) for m in stub.ListModels(pb.ListModelsRequest()).models}
+        assert listed["tiny-trained"]["prior.epsilon_m"] == "0.02"
+        grasps = [
+            pb.Grasp(nodes=[node], displacement=pb.Vec3(x=u[0], y=u[1], z=u[2]))
+            for node, u in zip(sample.nodes.tolist(), sample.displacements.tolist(), strict=True)
+        ]
+        request = pb.PredictRequest(model="tiny-trained", grasps=grasps)
+        served = np.frombuffer(stub.Predict(request).displacements, dtype="<f4").reshape(-1, 3)
+
+    features = np.zeros((1, dataset.mesh.node_count, 7), dtype=np.float32)
+    features[0, :, :3] = dataset.mesh.positions.numpy()
+    features[0, sample.nodes, 3:6] = sample.displacements
+    features[0, sample.nodes, 6] = 1.0
+    session = onnxruntime.InferenceSession(str(models / "tiny-trained" / "model.onnx"))
+    (network,) = session.run(["displacement"], {"features": features})
+    _, points, u, mask = pad_points(
+        dataset.mesh.positions, [torch.from_numpy(sample.nodes)], [torch.from_numpy(sample.displacements)]
+    )
+    prior = Prior(dataset.mesh.prior[0], 0.02, dataset.mesh.prior[2])
+    expected = network[0] + prior.evaluate(dataset.mesh.positions, points, u, mask)[0].numpy()
+    relative = np.linalg.norm(served - expected) / np.linalg.norm(expected)
+    assert relative < 1e-5, f"relative difference {relative:.2e}"
+
+
+def test_training_beats_the_untrained_network_through_nak_eval(
+    nak_binary: Path, coarse_data: Path, exported: tuple[Path, Path]
+) -> None:
+    models, _ = exported
+    trained = evaluate(models / "tiny-trained", coarse_data, nak_binary, COARSE)
+    untrained = nak_eval(nak_binary, coarse_data, "tiny-untrained", COARSE, models)["subsets"]["combined"]
+    assert trained["dcm_combined"] > untrained["dcm"] + 5.0, (trained, untrained)
+    written = tomllib.loads((models / "tiny-trained" / "manifest.toml").read_text())["metrics"]
+    assert written["dcm_code_combined"] == trained["dcm_code_combined"]
+    assert written["network_ms_p50"] > 0 and written["timed_requests"] > 0

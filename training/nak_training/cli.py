@@ -1,0 +1,80 @@
+"""`python -m nak_training`: train, export and evaluate networks for nak, and report on them.
+
+python -m nak_training all --config training/configs/pointnet-reg.toml --data DATA
+python -m nak_training train|export|evaluate --config C --data DATA
+python -m nak_training report --data DATA
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from .config import TrainConfig, load_config
+from .dataset import open_dataset
+from .errors import TrainingInputError
+
+DEFAULT_MODELS = Path("models/phantom-liver")
+DEFAULT_MESH = Path("models/phantom-liver/liver.msh")
+DEFAULT_NAK = Path("target/release/nak")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m nak_training", description=__doc__.split("\n\n")[0])
+    commands = parser.add_subparsers(dest="command", required=True)
+    for name, text in [
+        ("train", "train (resumes from the run's checkpoint)"),
+        ("export", "export the best checkpoint to ONNX + manifest + config"),
+        ("evaluate", "score the exported model with nak eval; write its [metrics]"),
+        ("all", "train, export and evaluate"),
+    ]:
+        command = commands.add_parser(name, help=text)
+        command.add_argument("--config", type=Path, required=True, help="training configuration (TOML)")
+        command.add_argument("--data", type=Path, required=True, help="a dataset made by nak datagen")
+        command.add_argument("--runs", type=Path, default=Path("out/runs"), help="checkpoints and logs")
+        command.add_argument("--out", type=Path, default=DEFAULT_MODELS, help="where model directories go")
+        command.add_argument("--nak", type=Path, default=DEFAULT_NAK, help="the nak binary (evaluate)")
+        command.add_argument("--mesh", type=Path, default=DEFAULT_MESH, help="the dataset's mesh (evaluate)")
+        command.add_argument("--steps", type=int, help="override the configuration's step count")
+    report = commands.add_parser("report", help="the results table and the accuracy-latency figure")
+    report.add_argument("--data", type=Path, required=True, help="the dataset the models were scored on")
+    report.add_argument("--models", type=Path, default=DEFAULT_MODELS)
+    report.add_argument("--nak", type=Path, default=DEFAULT_NAK)
+    report.add_argument("--mesh", type=Path, default=DEFAULT_MESH)
+    report.add_argument("--out", type=Path, default=Path("docs/models"))
+    args = parser.parse_args(argv)
+    try:
+        if args.command == "report":
+            from .report import write_report
+
+            write_report(args.data, args.models, args.nak, args.mesh, args.out)
+            return 0
+        config = load_config(args.config, {"steps": args.steps} if args.steps else None)
+        run(args.command, config, args)
+    except TrainingInputError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted: run the same command again to resume from the last checkpoint", file=sys.stderr)
+        return 130
+    return 0
+
+
+def run(command: str, config: TrainConfig, args: argparse.Namespace) -> None:
+    dataset = open_dataset(args.data)
+    if command in ("train", "all"):
+        from .train import Trainer
+
+        run_dir = args.runs / config.name
+        run_dir.mkdir(parents=True, exist_ok=True)
+        Trainer(config, dataset, run_dir, log=lambda m: print(m, flush=True)).run()
+    if command in ("export", "all"):
+        from .export import export
+
+        export(config, dataset, args.runs / config.name, args.out)
+    if command in ("evaluate", "all"):
+        from .evaluate import evaluate
+
+        metrics = evaluate(args.out / config.name, args.data, args.nak, args.mesh)
+        print(f"{config.name}: [metrics] written: {metrics}")

@@ -1,0 +1,90 @@
+"""A training run's configuration: one TOML file, committed beside the model it made."""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from .errors import TrainingInputError
+from .models import ARCHITECTURES, SIZES
+
+METHODS = {"base": "direct", "res": "residual", "reg": "direct"}
+SUBSETS = {"single": ("single",), "multi": ("multi",), "all": ("single", "multi")}
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    name: str
+    architecture: str
+    method: str  # base | res | reg (the paper's Base, Method 1, Method 2)
+    size: str = "cpu"
+    # Which samples train the model: single (Indiv.), multi (Comb.) or all (Multi).
+    subset: str = "all"
+    # Kelvinlet ε in metres, or "fit": the best of a grid over 1–8 cm on the train split.
+    epsilon: float | str = "fit"
+    steps: int = 3000
+    batch: int = 16
+    # Nodes decoded (and scored) per step; the pooled summary always sees every node.
+    query_nodes: int = 1024
+    lr: float = 2e-3
+    weight_decay: float = 5e-5
+    # Kelvinlet regularization (method reg): weight and q samples per step (DESIGN.md §5).
+    lambda_reg: float = 1.0
+    q_batch: int = 8
+    val_every: int = 250
+    val_samples: int = 256
+    seed: int = 0
+    threads: int = 2
+    description: str = ""
+
+    @property
+    def mode(self) -> str:
+        return METHODS[self.method]
+
+    @property
+    def subsets(self) -> tuple[str, ...]:
+        return SUBSETS[self.subset]
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def parse_config(values: dict[str, Any], origin: str) -> TrainConfig:
+    known = {f.name for f in dataclasses.fields(TrainConfig)}
+    unknown = sorted(set(values) - known)
+    if unknown:
+        raise TrainingInputError(origin, f"unknown key(s) {unknown}; known: {sorted(known)}")
+    for key in ("name", "architecture", "method"):
+        if key not in values:
+            raise TrainingInputError(origin, f"missing key {key!r}")
+    choices: dict[str, tuple[str, ...]] = {
+        "architecture": tuple(ARCHITECTURES),
+        "method": tuple(METHODS),
+        "size": SIZES,
+        "subset": tuple(SUBSETS),
+    }
+    for key, allowed in choices.items():
+        if key in values and values[key] not in allowed:
+            raise TrainingInputError(origin, f"{key} = {values[key]!r}: expected one of {list(allowed)}")
+    epsilon = values.get("epsilon", "fit")
+    if epsilon != "fit" and not (isinstance(epsilon, int | float) and 0 < epsilon < 1):
+        raise TrainingInputError(origin, f'epsilon = {epsilon!r}: expected "fit" or metres in (0, 1)')
+    try:
+        config = TrainConfig(**values)
+    except TypeError as e:
+        raise TrainingInputError(origin, str(e)) from e
+    for key in ("steps", "batch", "query_nodes", "val_every", "val_samples", "threads"):
+        if int(getattr(config, key)) < 1:
+            raise TrainingInputError(origin, f"{key} = {getattr(config, key)!r}: must be at least 1")
+    return config
+
+
+def load_config(path: Path, overrides: dict[str, Any] | None = None) -> TrainConfig:
+    try:
+        values = tomllib.loads(path.read_text())
+    except (OSError, tomllib.TOMLDecodeError) as e:
+        raise TrainingInputError(path, f"unreadable configuration ({e})") from e
+    return parse_config({**values, **(overrides or {})}, str(path))

@@ -1,0 +1,197 @@
+"""Datasets exactly as `nak datagen` writes them (src/data/dataset.rs), read without conversion.
+
+A dataset directory holds `dataset.json`, `mesh.safetensors` (the mesh's geometry as nak loaded it)
+and chunks `chunk-NNNNN.safetensors` (`displacement` f32 [B, N, 3]) with `chunk-NNNNN.json` (per
+sample: index, subset, split, grasps). A chunk without its JSON is still being generated and is
+skipped, as `nak eval` does; a chunk whose tensor does not match its JSON is refused by name.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from safetensors import SafetensorError
+from safetensors.numpy import load_file
+
+from .errors import TrainingInputError
+
+SUBSETS = ("single", "multi")
+SPLITS = ("train", "val", "test")
+
+
+@dataclass(frozen=True)
+class Mesh:
+    """The geometry nak serves: node order, lumped volumes and surface normals are nak's own."""
+
+    name: str
+    content_hash: str
+    positions: torch.Tensor  # f64 [N, 3], metres
+    nodal_volumes: torch.Tensor  # f64 [N]
+    surface_nodes: torch.Tensor  # i64 [S]
+    normals: torch.Tensor  # f64 [N, 3], unit on the surface, zero inside
+    prior: tuple[float, float, float]  # the mesh's Kelvinlet (ν, ε, λ)
+    neighbours: tuple[int, int]  # grasp neighbour count range of the sampling distribution
+
+    @property
+    def node_count(self) -> int:
+        return int(self.positions.shape[0])
+
+
+@dataclass(frozen=True)
+class Sample:
+    index: int
+    subset: str
+    split: str
+    nodes: np.ndarray  # i64 [K], every grasped node
+    displacements: np.ndarray  # f64 [K, 3], the displacement of each grasped node
+
+
+@dataclass(frozen=True)
+class Split:
+    """The samples of one split and subset selection, with their fields in memory."""
+
+    samples: list[Sample]
+    fields: torch.Tensor  # f32 [S, N, 3]
+
+    def __len__(self) -> int:
+        return len(self.samples)
+
+
+@dataclass(frozen=True)
+class Dataset:
+    root: Path
+    info: dict[str, Any]
+    mesh: Mesh
+
+    @property
+    def regime(self) -> str:
+        return str(self.info["regime"])
+
+    @property
+    def seed(self) -> int:
+        return int(self.info["seed"])
+
+    def chunk_count(self) -> int:
+        total = int(self.info["single"]) + int(self.info["multi"])
+        size = int(self.info["chunk_size"])
+        return -(-total // size)
+
+    def load(self, split: str, subsets: tuple[str, ...] = SUBSETS) -> Split:
+        """Every complete, successfully solved sample of `split` in `subsets`."""
+        if split not in SPLITS:
+            raise TrainingInputError(self.root, f"unknown split {split!r}: expected one of {SPLITS}")
+        samples: list[Sample] = []
+        fields: list[np.ndarray] = []
+        for chunk in range(self.chunk_count()):
+            records_path = self.root / f"chunk-{chunk:05d}.json"
+            if not records_path.is_file():
+                continue
+            records = _read_json(records_path)
+            if not isinstance(records, list):
+                raise TrainingInputError(records_path, "expected a list of samples")
+            wanted = [
+                i
+                for i, r in enumerate(records)
+                if r.get("split") == split and r.get("subset") in subsets and not _failed(r)
+            ]
+            if not wanted:
+                continue
+            field = self._chunk_field(chunk, len(records))
+            for i in wanted:
+                samples.append(_sample(records[i], records_path))
+                fields.append(field[i])
+        if not samples:
+            raise TrainingInputError(
+                self.root, f"no complete samples in split {split!r} for subsets {list(subsets)} (nak datagen resumes)"
+            )
+        return Split(samples, torch.from_numpy(np.stack(fields)))
+
+    def _chunk_field(self, chunk: int, count: int) -> np.ndarray:
+        path = self.root / f"chunk-{chunk:05d}.safetensors"
+        try:
+            tensors = load_file(str(path))
+        except (OSError, SafetensorError) as e:
+            raise TrainingInputError(path, f"unreadable chunk ({e})") from e
+        field = tensors.get("displacement")
+        expected = (count, self.mesh.node_count, 3)
+        if field is None or field.dtype != np.float32 or field.shape != expected:
+            got = "missing" if field is None else f"{field.dtype} {field.shape}"
+            raise TrainingInputError(path, f"displacement is {got}; expected float32 {expected}")
+        return field
+
+
+def _failed(record: dict[str, Any]) -> bool:
+    solver = record.get("solver")
+    return isinstance(solver, dict) and solver.get("failure") is not None
+
+
+def _sample(record: dict[str, Any], origin: Path) -> Sample:
+    try:
+        nodes = [n for g in record["grasps"] for n in g["nodes"]]
+        displacements = [g["displacement"] for g in record["grasps"] for _ in g["nodes"]]
+        return Sample(
+            index=int(record["index"]),
+            subset=str(record["subset"]),
+            split=str(record["split"]),
+            nodes=np.asarray(nodes, dtype=np.int64),
+            displacements=np.asarray(displacements, dtype=np.float64).reshape(-1, 3),
+        )
+    except (KeyError, TypeError, ValueError) as e:
+        raise TrainingInputError(origin, f"sample {record.get('index')}: malformed grasps ({e})") from e
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise TrainingInputError(path, f"unreadable ({e})") from e
+
+
+def open_dataset(root: Path) -> Dataset:
+    """Reads `dataset.json` and `mesh.safetensors`, checking that they describe the same mesh."""
+    info = _read_json(root / "dataset.json")
+    for key in ("mesh_name", "mesh_hash", "node_count", "regime", "seed", "single", "multi", "chunk_size"):
+        if key not in info:
+            raise TrainingInputError(root / "dataset.json", f"missing key {key!r}: not a nak dataset")
+    mesh = read_mesh(root / "mesh.safetensors")
+    if mesh.content_hash != info["mesh_hash"] or mesh.node_count != int(info["node_count"]):
+        raise TrainingInputError(
+            root / "mesh.safetensors",
+            f"mesh {mesh.name} {mesh.content_hash} ({mesh.node_count} nodes) is not the dataset's mesh "
+            f"{info['mesh_name']} {info['mesh_hash']} ({info['node_count']} nodes)",
+        )
+    return Dataset(root, info, mesh)
+
+
+def read_mesh(path: Path) -> Mesh:
+    if not path.is_file():
+        raise TrainingInputError(path, "missing: datasets made by nak datagen carry their mesh (regenerate it)")
+    try:
+        tensors = load_file(str(path))
+        with open(path, "rb") as f:
+            header_len = int.from_bytes(f.read(8), "little")
+            metadata: dict[str, str] = json.loads(f.read(header_len)).get("__metadata__", {})
+    except (OSError, SafetensorError, json.JSONDecodeError) as e:
+        raise TrainingInputError(path, f"unreadable mesh ({e})") from e
+    try:
+        return Mesh(
+            name=metadata["name"],
+            content_hash=metadata["content_hash"],
+            positions=torch.from_numpy(tensors["positions"]),
+            nodal_volumes=torch.from_numpy(tensors["nodal_volumes"]),
+            surface_nodes=torch.from_numpy(tensors["surface_nodes"].astype(np.int64)),
+            normals=torch.from_numpy(tensors["normals"]),
+            prior=(
+                float(metadata["poisson_ratio"]),
+                float(metadata["epsilon_m"]),
+                float(metadata["lambda"]),
+            ),
+            neighbours=(int(metadata["neighbours_min"]), int(metadata["neighbours_max"])),
+        )
+    except KeyError as e:
+        raise TrainingInputError(path, f"missing {e} (made by an older nak? regenerate the dataset)") from e

@@ -1,0 +1,196 @@
+"""The results page (docs/models.md): every trained model's test-split DCM through nak in the layout of
+the paper's Table 2, beside the paper's figures and the Kelvinlet and green-linear baselines, and nak's
+version of the paper's Fig. 2 (DCM against the engine's time per request) as a PNG.
+
+Everything is read from the model manifests' [metrics] (written by `evaluate`) or measured now with
+`nak eval` (the baselines), so the page can be regenerated with one command.
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+from .evaluate import metrics_of, nak_eval  # noqa: E402
+
+ARCHITECTURES = {"pointnet": "PointNet", "deepset": "DeepSet U-Net", "isab": "ISAB (SAB)"}
+METHODS = ("base", "res", "reg")
+METHOD_LABEL = {"base": "Base", "res": "+Res", "reg": "+Reg"}
+# Table 2 columns: (what the model was trained on, the test subset scored, heading).
+COLUMNS = (("single", "single", "Indiv."), ("multi", "multi", "Comb."), ("all", "combined", "Multi"))
+# The paper's Table 2 (linear regime, code form of DCM), for the rows nak has counterparts of.
+PAPER = {
+    "pointnet": {"single": (94.23, 94.66, 96.54), "multi": (89.79, 90.11, 91.22), "all": (94.00, 94.12, 95.01)},
+    "deepset": {"single": (92.11, 93.56, 94.04), "multi": (88.23, 89.67, 90.01), "all": (91.20, 92.33, 92.88)},
+    "isab": {"single": (93.42, 94.60, 96.03), "multi": (88.05, 89.91, 91.02), "all": (92.54, 93.66, 94.42)},
+}
+PAPER_KELVINLET = {"single": 65.24, "multi": 64.33, "all": 64.82}
+
+
+@dataclass(frozen=True)
+class Entry:
+    name: str
+    architecture: str
+    method: str
+    trained_on: str
+    epsilon: float
+    metrics: dict[str, Any]
+
+
+def read_models(root: Path) -> list[Entry]:
+    entries = []
+    for manifest_path in sorted(root.glob("*/manifest.toml")):
+        manifest = tomllib.loads(manifest_path.read_text())
+        provenance = manifest.get("provenance", {})
+        if "architecture" not in provenance or "dcm_combined" not in manifest.get("metrics", {}):
+            continue
+        entries.append(
+            Entry(
+                name=manifest["model"]["name"],
+                architecture=provenance["architecture"],
+                method=manifest["model"]["method"],
+                trained_on=provenance["trained_on"],
+                epsilon=manifest["prior"]["epsilon_m"],
+                metrics=manifest["metrics"],
+            )
+        )
+    return entries
+
+
+def baseline(nak: Path, data: Path, mesh: Path, model: str, epsilon: float | None = None) -> dict[str, Any]:
+    """`nak eval` of the Kelvinlet (at the mesh's ε, or another) or green-linear on the test split."""
+    if epsilon is None:
+        return metrics_of(nak_eval(nak, data, model, mesh, None))
+    with tempfile.TemporaryDirectory() as tmp:
+        copy = Path(tmp) / mesh.name
+        shutil.copy(mesh, copy)
+        config = (mesh.parent / "model.toml").read_text()
+        lines = [f"epsilon_m = {epsilon}" if line.startswith("epsilon_m") else line for line in config.splitlines()]
+        (Path(tmp) / "model.toml").write_text("\n".join(lines) + "\n")
+        return metrics_of(nak_eval(nak, data, model, copy, None))
+
+
+def model_name(architecture: str, method: str, trained_on: str) -> str:
+    """The naming of training/configs: `<architecture>-<method>` plus `-indiv` / `-comb` for the
+    models trained on one subset."""
+    return f"{architecture}-{method}" + {"single": "-indiv", "multi": "-comb", "all": ""}[trained_on]
+
+
+def cell(entries: list[Entry], architecture: str, method: str, trained_on: str, subset: str, key: str) -> str:
+    wanted = model_name(architecture, method, trained_on)
+    value = next((e.metrics.get(f"{key}_{subset}") for e in entries if e.name == wanted), None)
+    return "–" if value is None else f"{value:.2f}"
+
+
+def table(entries: list[Entry], key: str, baselines: dict[str, dict[str, Any]], with_paper: bool) -> list[str]:
+    head = "| model | " + " | ".join(f"{h} {METHOD_LABEL[m]}" for _, _, h in COLUMNS for m in METHODS) + " |"
+    lines = [head, "|---" * (1 + 3 * len(COLUMNS)) + "|"]
+    for arch, label in ARCHITECTURES.items():
+        cells = [cell(entries, arch, m, trained, subset, key) for trained, subset, _ in COLUMNS for m in METHODS]
+        lines.append(f"| {label} (nak, cpu size) | " + " | ".join(cells) + " |")
+        if with_paper:
+            paper = [f"{PAPER[arch][trained][i]:.2f}" for trained, _, _ in COLUMNS for i in range(3)]
+            lines.append(f"| {label} (paper, GPU) | " + " | ".join(paper) + " |")
+    for name, metrics in baselines.items():
+        values = [metrics.get(f"{key}_{subset}") for _, subset, _ in COLUMNS]
+        cells = [("–" if v is None else f"{v:.2f}") for v in values for _ in METHODS]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    if with_paper:
+        cells = [f"{PAPER_KELVINLET[trained]:.2f}" for trained, _, _ in COLUMNS for _ in METHODS]
+        lines.append("| Kelvinlet (paper) | " + " | ".join(cells) + " |")
+    return lines
+
+
+def figure(entries: list[Entry], baselines: dict[str, dict[str, Any]], path: Path) -> None:
+    markers = {"pointnet": "o", "deepset": "s", "isab": "^"}
+    colours = {"base": "#9e9e9e", "res": "#1f77b4", "reg": "#d62728"}
+    fig, ax = plt.subplots(figsize=(7.5, 5))
+    for e in entries:
+        if e.trained_on != "all":
+            continue
+        x, y = e.metrics.get("total_ms_p50"), e.metrics.get("dcm_code_combined")
+        if x is None or y is None:
+            continue
+        ax.scatter(x, y, marker=markers[e.architecture], s=70, color=colours[e.method], edgecolors="black")
+        ax.annotate(e.name, (x, y), textcoords="offset points", xytext=(6, -3), fontsize=7)
+    for name, metrics in baselines.items():
+        x, y = metrics.get("total_ms_p50"), metrics.get("dcm_code_combined")
+        if x is not None and y is not None:
+            ax.scatter(x, y, marker="*", s=160, color="#2ca02c", edgecolors="black")
+            ax.annotate(name, (x, y), textcoords="offset points", xytext=(6, -3), fontsize=7)
+    for arch, marker in markers.items():
+        ax.scatter([], [], marker=marker, color="white", edgecolors="black", label=ARCHITECTURES[arch])
+    for method, colour in colours.items():
+        ax.scatter([], [], marker="o", color=colour, label=METHOD_LABEL[method])
+    ax.set_xscale("log")
+    ax.set_xlabel("engine time per request, p50 (ms, log scale; 2 vCPUs, one request at a time)")
+    ax.set_ylabel("DCM, code form (%), linear test split, all samples")
+    ax.set_title("nak on the phantom liver: accuracy against served time (cf. the paper's Fig. 2)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+
+
+def write_report(data: Path, models: Path, nak: Path, mesh: Path, out: Path) -> None:
+    entries = read_models(models)
+    fitted = sorted({e.epsilon for e in entries if e.method != "base" and e.epsilon != 0.05})
+    baselines = {"Kelvinlet ε = 5 cm (nak)": baseline(nak, data, mesh, "kelvinlet", 0.05)}
+    for eps in fitted:
+        baselines[f"Kelvinlet ε = {eps * 100:g} cm (nak)"] = baseline(nak, data, mesh, "kelvinlet", eps)
+    baselines["green-linear (exact linear FEM)"] = baseline(nak, data, mesh, "green-linear")
+    out.mkdir(parents=True, exist_ok=True)
+    figure(entries, baselines, out / "accuracy-latency.png")
+    rows = [
+        "| model | method | trained on | ε (cm) | DCM single | DCM multi | DCM all | code form all | "
+        "network ms p50 | total ms p50 |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for e in entries:
+        m = e.metrics
+        rows.append(
+            f"| `{e.name}` | {METHOD_LABEL[e.method]} | {e.trained_on} | {e.epsilon * 100:g} | "
+            f"{m.get('dcm_single', float('nan')):.2f} | {m.get('dcm_multi', float('nan')):.2f} | "
+            f"{m['dcm_combined']:.2f} | {m['dcm_code_combined']:.2f} | {m.get('network_ms_p50', float('nan')):.3f} | "
+            f"{m.get('total_ms_p50', float('nan')):.3f} |"
+        )
+    text = [
+        "# Trained networks on the phantom liver (linear regime)",
+        "",
+        "Generated by `scripts/nak-train report --data DATA` from the manifests in `models/phantom-liver/`",
+        "(their `[metrics]` come from `nak eval` on the test split) and from `nak eval` of the baselines.",
+        f"Dataset: `{data}` (`nak datagen --regime linear --preset paper --seed 0`). Times: the serving",
+        "engine's time per request (`nak eval`, 200 test requests one at a time) on this machine's 2 vCPUs.",
+        "",
+        "## DCM in the paper's code form (comparable with its Table 2)",
+        "",
+        "Indiv.: trained and tested on single-grasper samples; Comb.: two-grasper; Multi: one model",
+        "trained on both, tested on all. `–`: not trained.",
+        "",
+        *table(entries, "dcm_code", baselines, with_paper=True),
+        "",
+        "## DCM as DESIGN.md §6 defines it (volume-weighted mean of relative errors)",
+        "",
+        *table(entries, "dcm", baselines, with_paper=False),
+        "",
+        "## Every model",
+        "",
+        *rows,
+        "",
+        "## Accuracy against served time",
+        "",
+        "![DCM against the engine's time per request](models/accuracy-latency.png)",
+        "",
+    ]
+    (out.parent / "models.md").write_text("\n".join(text))
+    print(f"wrote {out.parent / 'models.md'} and {out / 'accuracy-latency.png'}")

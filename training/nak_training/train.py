@@ -1,0 +1,341 @@
+"""Training: Base, +Res (Method 1) and +Reg (Method 2) on a nak dataset, seeded and resumable.
+
+Per step a batch of samples from p is drawn from the train split; the loss is the L2(Ω) misfit
+(lumped nodal volumes, DESIGN.md §6) on `query_nodes` nodes drawn uniformly, in normalized output
+units. +Res learns u_true − prior; +Reg adds λ_reg × the misfit to the Kelvinlet field on fresh
+q samples. Row-wise networks run their encoder over the nodes at rest once per step
+(`SetNet.forward_split`), so a step costs O(N + B·(K + Q)) rather than O(B·N). Model selection is on
+the val split's volume-weighted DCM, evaluated with the full forward that is exported.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from .config import TrainConfig
+from .dataset import Dataset, Mesh, Split
+from .errors import TrainingInputError
+from .kelvinlet import Prior, pad_points
+from .models import Grasped, SetNet, build, parameter_count
+from .sampling import QSampler
+
+EPSILON_GRID_M = (0.01, 0.015, 0.02, 0.025, 0.03, 0.04, 0.05, 0.06, 0.08)
+FIT_SAMPLES = 400
+STN_PENALTY = 0.01
+PROGRESS_EVERY = 50
+
+
+def prior_of(mesh: Mesh, epsilon: float) -> Prior:
+    nu, _, lam = mesh.prior
+    return Prior(nu, epsilon, lam)
+
+
+def prior_fields(prior: Prior, mesh: Mesh, split: Split, batch: int = 16) -> torch.Tensor:
+    """The prior over every node for every sample of `split`: f32 [S, N, 3]."""
+    out = torch.empty_like(split.fields)
+    for start in range(0, len(split), batch):
+        chunk = split.samples[start : start + batch]
+        _, points, disp, mask = pad_points(
+            mesh.positions,
+            [torch.from_numpy(s.nodes) for s in chunk],
+            [torch.from_numpy(s.displacements) for s in chunk],
+        )
+        out[start : start + len(chunk)] = prior.evaluate(mesh.positions, points, disp, mask).float()
+    return out
+
+
+def relative_errors(truth: torch.Tensor, estimate: torch.Tensor, volumes: torch.Tensor) -> torch.Tensor:
+    """‖u_true − û‖_{L2(Ω)} / ‖u_true‖_{L2(Ω)} per sample (DESIGN.md §6), truth/estimate [S, N, 3]."""
+    v = volumes.to(torch.float64)
+    err = ((truth.double() - estimate.double()) ** 2).sum(-1) @ v
+    norm = (truth.double() ** 2).sum(-1) @ v
+    return (err / norm).sqrt()
+
+
+def dcm(truth: torch.Tensor, estimate: torch.Tensor, volumes: torch.Tensor) -> float:
+    return float(100.0 * (1.0 - relative_errors(truth, estimate, volumes).mean()))
+
+
+def fit_epsilon(mesh: Mesh, train: Split, log: Any = print) -> tuple[float, dict[str, float]]:
+    """The grid ε whose prior scores best on (up to FIT_SAMPLES of) the train split."""
+    subset = Split(train.samples[:FIT_SAMPLES], train.fields[:FIT_SAMPLES])
+    scores = {}
+    for eps in EPSILON_GRID_M:
+        scores[f"{eps:g}"] = dcm(subset.fields, prior_fields(prior_of(mesh, eps), mesh, subset), mesh.nodal_volumes)
+        log(f"  ε = {eps * 100:4.1f} cm: prior DCM {scores[f'{eps:g}']:7.2f} % on {len(subset)} train samples")
+    best = max(EPSILON_GRID_M, key=lambda e: scores[f"{e:g}"])
+    return best, scores
+
+
+@dataclass
+class Batch:
+    """Normalized features of a batch, laid out for `SetNet.forward_split`."""
+
+    dense: torch.Tensor  # [B, N, 7]
+    rows: torch.Tensor  # [B, K, 7], the grasped rows
+    grasped: Grasped
+
+
+class Trainer:
+    def __init__(self, config: TrainConfig, dataset: Dataset, run_dir: Path, log: Any = print) -> None:
+        self.config, self.dataset, self.run_dir, self.log = config, dataset, run_dir, log
+        torch.set_num_threads(config.threads)
+        torch.manual_seed(config.seed)
+        self.mesh = dataset.mesh
+        self.generator = torch.Generator().manual_seed(config.seed)
+        self.train = dataset.load("train", config.subsets)
+        self.val = dataset.load("val", config.subsets)
+        self.val = Split(self.val.samples[: config.val_samples], self.val.fields[: config.val_samples])
+        self.log(
+            f"{config.name}: {config.architecture} ({config.size}) {config.method}, {len(self.train)} train / "
+            f"{len(self.val)} val samples ({config.subset}), mesh {self.mesh.name} {self.mesh.node_count} nodes"
+        )
+        state = self._load_state()
+        if state is None:
+            if config.epsilon == "fit":
+                self.log("fitting ε on the train split:")
+                epsilon, scores = fit_epsilon(self.mesh, self.train, self.log)
+            else:
+                epsilon, scores = float(config.epsilon), {}
+            state = {"epsilon": epsilon, "epsilon_scores": scores}
+            (run_dir / "state.json").write_text(json.dumps(state, indent=2) + "\n")
+        self.epsilon = float(state["epsilon"])
+        self.prior = prior_of(self.mesh, self.epsilon)
+        self.log(f"prior: ν = {self.prior.poisson_ratio}, ε = {self.epsilon * 100:g} cm, λ = {self.prior.lam:g}")
+        residual = config.method == "res"
+        self.train_prior = prior_fields(self.prior, self.mesh, self.train) if residual else None
+        self.val_prior = prior_fields(self.prior, self.mesh, self.val) if residual else None
+        self.model = build(config.architecture, config.size)
+        self._set_statistics()
+        positions = self.mesh.positions.float()
+        rest = torch.cat([positions, torch.zeros(self.mesh.node_count, 4)], dim=1)
+        self.rest = self.model.normalizer.inputs(rest)
+        self.volumes = self.mesh.nodal_volumes.float()
+        self.q = QSampler(self.mesh, self.generator) if config.method == "reg" else None
+        self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+        self.step = 0
+        self.best = -math.inf
+        self.elapsed = 0.0
+        self.history: list[dict[str, float]] = []
+        self._resume()
+
+    # -- set-up ---------------------------------------------------------------------------------
+
+    def _load_state(self) -> dict[str, Any] | None:
+        path = self.run_dir / "state.json"
+        if not path.is_file():
+            return None
+        try:
+            state: dict[str, Any] = json.loads(path.read_text())
+            return state
+        except json.JSONDecodeError as e:
+            raise TrainingInputError(path, f"unreadable ({e}); delete the run directory to start over") from e
+
+    def _set_statistics(self) -> None:
+        """Input and output normalization from the train split (they become part of the graph)."""
+        positions = self.mesh.positions
+        u = torch.cat([torch.from_numpy(s.displacements) for s in self.train.samples])
+        target = self.train.fields if self.train_prior is None else self.train.fields - self.train_prior
+        flat = target.reshape(-1, 3).double()
+        self.model.normalizer.set(
+            x_mean=positions.mean(0),
+            x_std=positions.std(0),
+            u_scale=(u**2).mean(0).sqrt(),
+            out_mean=flat.mean(0),
+            out_std=flat.std(0),
+        )
+
+    def _resume(self) -> None:
+        path = self.run_dir / "checkpoint.pt"
+        if not path.is_file():
+            return
+        try:
+            checkpoint = torch.load(path, weights_only=False)
+        except Exception as e:  # torch raises many types for a truncated or foreign file
+            raise TrainingInputError(path, f"unreadable checkpoint ({e}); delete it to start over") from e
+        if checkpoint.get("config") != self.config.to_dict():
+            raise TrainingInputError(path, "was written with another configuration; use a new run directory")
+        if checkpoint.get("mesh_hash") != self.mesh.content_hash:
+            raise TrainingInputError(
+                path, f"was trained on mesh {checkpoint.get('mesh_hash')}; this dataset is {self.mesh.content_hash}"
+            )
+        self.model.load_state_dict(checkpoint["model"])
+        self.optimizer.load_state_dict(checkpoint["optimizer"])
+        self.generator.set_state(checkpoint["generator"])
+        self.step, self.best, self.elapsed = checkpoint["step"], checkpoint["best"], checkpoint["elapsed"]
+        self.history = checkpoint["history"]
+        self.log(f"resumed at step {self.step} (best val DCM {self.best:.2f} %)")
+
+    # -- one step -------------------------------------------------------------------------------
+
+    def _batch(self, nodes: list[torch.Tensor], displacements: list[torch.Tensor]) -> Batch:
+        ids, _, disp, mask = pad_points(self.mesh.positions, nodes, displacements)
+        # Padding repeats a sample's first grasped node: give it that node's displacement too, so the
+        # repeated row is identical wherever it is written.
+        disp = torch.where(mask[..., None], disp, disp[:, :1])
+        b = len(nodes)
+        rows = torch.cat([disp.float() / self.model.normalizer.u_scale, torch.ones(b, ids.shape[1], 1)], dim=-1)
+        dense = self.rest.expand(b, -1, -1).clone()
+        dense[torch.arange(b).unsqueeze(-1).expand_as(ids), ids, 3:7] = rows
+        grasped = dense.gather(1, ids.unsqueeze(-1).expand(-1, -1, 7))
+        return Batch(dense, grasped, Grasped(ids, mask))
+
+    def _predict(self, batch: Batch, query: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        if self.model.row_wise:
+            out = self.model.forward_split(self.rest, batch.rows, batch.grasped, batch.dense[:, query])
+            return out, torch.zeros(())
+        out, penalty = self.model.forward_normalized(batch.dense)
+        return out[:, query], penalty
+
+    def _misfit(self, prediction: torch.Tensor, target: torch.Tensor, query: torch.Tensor) -> torch.Tensor:
+        """Volume-weighted mean squared misfit in normalized output units."""
+        n = self.model.normalizer
+        weights = self.volumes[query] / self.volumes[query].mean()
+        squared = ((prediction - (target - n.out_mean) / n.out_std) ** 2).sum(-1)
+        return (squared * weights).mean()
+
+    def _learning_rate(self) -> float:
+        warmup = min(100, self.config.steps // 10)
+        if self.step < warmup:
+            return self.config.lr * (self.step + 1) / warmup
+        progress = (self.step - warmup) / max(1, self.config.steps - warmup)
+        return self.config.lr * (0.02 + 0.98 * 0.5 * (1.0 + math.cos(math.pi * progress)))
+
+    def _step(self) -> float:
+        c = self.config
+        g = self.generator
+        picks = torch.randint(len(self.train), (c.batch,), generator=g)
+        samples = [self.train.samples[int(i)] for i in picks]
+        nodes = [torch.from_numpy(s.nodes) for s in samples]
+        displacements = [torch.from_numpy(s.displacements) for s in samples]
+        query = torch.randperm(self.mesh.node_count, generator=g)[: c.query_nodes]
+        target = self.train.fields[picks][:, query]
+        if self.train_prior is not None:
+            target = target - self.train_prior[picks][:, query]
+        if self.q is not None:
+            # q samples ride in the same forward pass: the nodes at rest are encoded once for both.
+            q_nodes, q_displacements = self.q.draw(c.q_batch)
+            _, points, disp, mask = pad_points(self.mesh.positions, q_nodes, q_displacements)
+            kelvinlet = self.prior.evaluate(self.mesh.positions[query], points, disp, mask).float()
+            nodes, displacements = nodes + q_nodes, displacements + q_displacements
+        prediction, penalty = self._predict(self._batch(nodes, displacements), query)
+        loss = self._misfit(prediction[: c.batch], target, query) + STN_PENALTY * penalty
+        if self.q is not None:
+            loss = loss + c.lambda_reg * self._misfit(prediction[c.batch :], kelvinlet, query)
+        for group in self.optimizer.param_groups:
+            group["lr"] = self._learning_rate()
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        return float(loss.detach())
+
+    # -- validation and the loop ----------------------------------------------------------------
+
+    @torch.no_grad()
+    def validate(self, batch: int = 8) -> float:
+        """Volume-weighted DCM of the served field (prior added for +Res) on the val samples."""
+        self.model.eval()
+        estimates = torch.empty_like(self.val.fields)
+        for start in range(0, len(self.val), batch):
+            chunk = self.val.samples[start : start + batch]
+            features = served_features(self.mesh, [s.nodes for s in chunk], [s.displacements for s in chunk])
+            estimates[start : start + len(chunk)] = self.model(features)
+        if self.val_prior is not None:
+            estimates += self.val_prior
+        self.model.train()
+        return dcm(self.val.fields, estimates, self.mesh.nodal_volumes)
+
+    def run(self) -> dict[str, Any]:
+        c = self.config
+        self.log(f"{parameter_count(self.model):,} parameters; {c.steps} steps of {c.batch} samples")
+        self.model.train()
+        started = time.monotonic() - self.elapsed
+        window: list[float] = []
+        while self.step < c.steps:
+            window.append(self._step())
+            self.step += 1
+            if self.step % PROGRESS_EVERY == 0 or self.step == c.steps:
+                self.elapsed = time.monotonic() - started
+                rate = self.step / self.elapsed
+                eta = (c.steps - self.step) / max(rate, 1e-9)
+                self.log(
+                    f"step {self.step:>6}/{c.steps}  loss {sum(window) / len(window):.5f}  "
+                    f"{rate:5.2f} steps/s  elapsed {_clock(self.elapsed)}  ETA {_clock(eta)}"
+                )
+                window.clear()
+            if self.step % c.val_every == 0 or self.step == c.steps:
+                score = self.validate()
+                improved = score > self.best
+                if improved:
+                    self.best = score
+                    torch.save(self.model.state_dict(), self.run_dir / "best.pt")
+                self.history.append({"step": self.step, "val_dcm": score})
+                self.log(
+                    f"  val DCM {score:.2f} %{'  (best so far: saved)' if improved else f'  (best {self.best:.2f} %)'}"
+                )
+                self.elapsed = time.monotonic() - started
+                self._checkpoint()
+        summary = {
+            "name": c.name,
+            "epsilon": self.epsilon,
+            "val_dcm": self.best,
+            "steps": self.step,
+            "training_time_s": round(self.elapsed, 1),
+            "train_samples": len(self.train),
+            "val_samples": len(self.val),
+            "parameters": parameter_count(self.model),
+            "history": self.history,
+        }
+        (self.run_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        return summary
+
+    def _checkpoint(self) -> None:
+        checkpoint = {
+            "config": self.config.to_dict(),
+            "mesh_hash": self.mesh.content_hash,
+            "model": self.model.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "generator": self.generator.get_state(),
+            "step": self.step,
+            "best": self.best,
+            "elapsed": self.elapsed,
+            "history": self.history,
+        }
+        tmp = self.run_dir / "checkpoint.pt.partial"
+        torch.save(checkpoint, tmp)
+        tmp.replace(self.run_dir / "checkpoint.pt")
+
+
+def served_features(mesh: Mesh, nodes: list[Any], displacements: list[Any]) -> torch.Tensor:
+    """Raw features [B, N, 7] exactly as nak builds them for a request (f32 positions, u_s, a)."""
+    b, n = len(nodes), mesh.node_count
+    features = torch.zeros(b, n, 7)
+    features[:, :, 0:3] = mesh.positions.float()
+    for i, (ids, disp) in enumerate(zip(nodes, displacements, strict=True)):
+        ids_t = torch.as_tensor(ids, dtype=torch.long)
+        features[i, ids_t, 3:6] = torch.as_tensor(disp, dtype=torch.float64).float()
+        features[i, ids_t, 6] = 1.0
+    return features
+
+
+def load_trained(run_dir: Path, config: TrainConfig) -> SetNet:
+    """The best model of a finished run."""
+    path = run_dir / "best.pt"
+    if not path.is_file():
+        raise TrainingInputError(path, "missing: train the model first")
+    model = build(config.architecture, config.size)
+    model.load_state_dict(torch.load(path, weights_only=True))
+    model.eval()
+    return model
+
+
+def _clock(seconds: float) -> str:
+    seconds = int(seconds)
+    return f"{seconds // 3600}:{seconds % 3600 // 60:02d}:{seconds % 60:02d}"
