@@ -39,7 +39,7 @@ def main(argv: list[str] | None = None) -> int:
         command.add_argument("--steps", type=int, help="override the configuration's step count")
     report = commands.add_parser("report", help="the results table and the accuracy-latency figure")
     report.add_argument("--data", type=Path, required=True, help="the dataset the models were scored on")
-    report.add_argument("--models", type=Path, default=DEFAULT_MODELS)
+    report.add_argument("--models", type=Path, nargs="+", default=[DEFAULT_MODELS], help="model directories")
     report.add_argument("--nak", type=Path, default=DEFAULT_NAK)
     report.add_argument("--mesh", type=Path, default=DEFAULT_MESH)
     report.add_argument("--out", type=Path, default=Path("docs/models"))
