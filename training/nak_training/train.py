@@ -91,8 +91,10 @@ class Trainer:
         self.mesh = dataset.mesh
         self.generator = torch.Generator().manual_seed(config.seed)
         self.train = dataset.load("train", config.subsets)
-        self.val = dataset.load("val", config.subsets)
-        self.val = Split(self.val.samples[: config.val_samples], self.val.fields[: config.val_samples])
+        val = dataset.load("val", config.subsets)
+        # Evenly spread over the split (single-grasper samples come first in a dataset).
+        keep = torch.linspace(0, len(val) - 1, min(config.val_samples, len(val))).round().long().unique()
+        self.val = Split([val.samples[int(i)] for i in keep], val.fields[keep])
         self.log(
             f"{config.name}: {config.architecture} ({config.size}) {config.method}, {len(self.train)} train / "
             f"{len(self.val)} val samples ({config.subset}), mesh {self.mesh.name} {self.mesh.node_count} nodes"
