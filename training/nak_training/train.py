@@ -63,9 +63,15 @@ def dcm(truth: torch.Tensor, estimate: torch.Tensor, volumes: torch.Tensor) -> f
     return float(100.0 * (1.0 - relative_errors(truth, estimate, volumes).mean()))
 
 
+def spread(split: Split, count: int) -> Split:
+    """`count` samples spread evenly over `split` (single-grasper samples come first in a dataset)."""
+    keep = torch.linspace(0, len(split) - 1, min(count, len(split))).round().long().unique()
+    return Split([split.samples[int(i)] for i in keep], split.fields[keep])
+
+
 def fit_epsilon(mesh: Mesh, train: Split, log: Any = print) -> tuple[float, dict[str, float]]:
-    """The grid ε whose prior scores best on (up to FIT_SAMPLES of) the train split."""
-    subset = Split(train.samples[:FIT_SAMPLES], train.fields[:FIT_SAMPLES])
+    """The grid ε whose prior scores best on (FIT_SAMPLES spread over) the train split."""
+    subset = spread(train, FIT_SAMPLES)
     scores = {}
     for eps in EPSILON_GRID_M:
         scores[f"{eps:g}"] = dcm(subset.fields, prior_fields(prior_of(mesh, eps), mesh, subset), mesh.nodal_volumes)
@@ -91,10 +97,7 @@ class Trainer:
         self.mesh = dataset.mesh
         self.generator = torch.Generator().manual_seed(config.seed)
         self.train = dataset.load("train", config.subsets)
-        val = dataset.load("val", config.subsets)
-        # Evenly spread over the split (single-grasper samples come first in a dataset).
-        keep = torch.linspace(0, len(val) - 1, min(config.val_samples, len(val))).round().long().unique()
-        self.val = Split([val.samples[int(i)] for i in keep], val.fields[keep])
+        self.val = spread(dataset.load("val", config.subsets), config.val_samples)
         self.log(
             f"{config.name}: {config.architecture} ({config.size}) {config.method}, {len(self.train)} train / "
             f"{len(self.val)} val samples ({config.subset}), mesh {self.mesh.name} {self.mesh.node_count} nodes"
