@@ -56,12 +56,21 @@ class Prior:
         return torch.where(lone, displacements * mask[..., None].to(displacements.dtype), solved)
 
     def field(self, nodes: torch.Tensor, points: torch.Tensor, coefficients: torch.Tensor) -> torch.Tensor:
-        """u [B, M, 3] at nodes [M, 3] (shared) or [B, M, 3], from points and coefficients [B, K, 3]."""
+        """u [B, M, 3] at nodes [M, 3] (shared) or [B, M, 3], from points and coefficients [B, K, 3].
+
+        `Γ(r) k = s [(a/r_ε + b/r_ε³) k + r (r·k)/r_ε³]`, as nak's kernel computes it: no 3×3 blocks.
+        """
         if nodes.dim() == 2:
             nodes = nodes.unsqueeze(0).expand(points.shape[0], -1, -1)
+        nu, eps = self.poisson_ratio, self.epsilon
         r = nodes[:, :, None, :] - points[:, None, :, :]  # [B, M, K, 3]
-        gamma = self.response(r)  # [B, M, K, 3, 3]
-        return torch.einsum("bmkij,bkj->bmi", gamma, coefficients)
+        r_eps2 = (r * r).sum(-1) + eps * eps
+        r_eps = r_eps2.sqrt()
+        inv3 = 1.0 / (r_eps2 * r_eps)
+        diagonal = (3.0 - 4.0 * nu) / r_eps + 2.0 * (1.0 - nu) * eps * eps * inv3  # [B, M, K]
+        k = coefficients[:, None, :, :]
+        along = (r * k).sum(-1) * inv3
+        return self.scale * (diagonal.unsqueeze(-1) * k + r * along.unsqueeze(-1)).sum(2)
 
     def evaluate(
         self, nodes: torch.Tensor, points: torch.Tensor, displacements: torch.Tensor, mask: torch.Tensor
