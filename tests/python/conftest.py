@@ -21,7 +21,7 @@ sys.path.insert(0, str(ROOT / "training"))
 @pytest.fixture(scope="session")
 def nak_binary() -> Path:
     """The debug binary built by `cargo test` (override with NAK_BIN)."""
-    path = Path(os.environ.get("NAK_BIN", ROOT / "target" / "debug" / "nak"))
+    path = Path(os.environ.get("NAK_BIN", ROOT / "target" / "debug" / "nak")).resolve()
     if not path.exists():
         pytest.fail(f"{path} not found: run `cargo build` first (scripts/test does)")
     return path

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import tomllib
 from collections.abc import Iterator
@@ -87,3 +88,50 @@ def test_serving_models_without_onnxruntime_names_what_is_missing(nak_binary: Pa
     assert result.returncode != 0
     assert "ORT_DYLIB_PATH" in result.stderr and "onnxruntime==1.31.1" in result.stderr, result.stderr
     assert "scripts/setup-python" in result.stderr, result.stderr
+
+
+SHIPPED = sorted(p.parent.name for p in (ROOT / "models" / "phantom-liver").glob("*/manifest.toml"))
+
+
+def test_the_embedded_phantom_serves_its_shipped_networks(nak_server: str) -> None:
+    pb, rpc = client.load_stubs()
+    with grpc.insecure_channel(nak_server) as channel:
+        stub = rpc.DeformationStub(channel)
+        listed = {m.name: dict(m.metadata) for m in stub.ListModels(pb.ListModelsRequest()).models}
+        assert set(SHIPPED) <= set(listed), (SHIPPED, sorted(listed))
+        sets = {s.name: list(s.nodes) for s in stub.GetMesh(pb.GetMeshRequest()).node_sets}
+        for name in SHIPPED:
+            with open(ROOT / "models" / "phantom-liver" / name / "manifest.toml", "rb") as f:
+                manifest = tomllib.load(f)
+            assert listed[name]["method"] == manifest["model"]["method"]
+            assert float(listed[name]["prior.epsilon_m"]) == manifest["prior"]["epsilon_m"]
+            grasp = pb.Grasp(nodes=sets["grasp_04"][:6], displacement=pb.Vec3(y=0.02))
+            response = stub.Predict(pb.PredictRequest(model=name, grasps=[grasp]))
+            u = np.frombuffer(response.displacements, dtype="<f4").reshape(-1, 3)
+            assert np.isfinite(u).all() and response.timing.network_us > 0, name
+            assert np.abs(u).max() > 1e-3, f"{name} does not move the tissue"
+
+
+def test_without_onnxruntime_the_embedded_phantom_still_serves_the_prior(nak_binary: Path, tmp_path: Path) -> None:
+    if not SHIPPED:
+        pytest.skip("no shipped networks")
+    proc = subprocess.Popen(
+        [str(nak_binary), "serve", "--listen", "127.0.0.1:0", "--log-format", "json"],
+        env={"PATH": "/usr/bin:/bin"},
+        cwd=tmp_path,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert proc.stderr is not None
+    warning = ""
+    try:
+        for line in proc.stderr:
+            message = json.loads(line)["fields"].get("message", "")
+            if "shipped networks" in message:
+                warning = message
+            if message == "listening":
+                break
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+    assert all(name in warning for name in SHIPPED) and "scripts/setup-python" in warning, warning

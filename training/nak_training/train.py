@@ -282,11 +282,10 @@ class Trainer:
                     self.best = score
                     torch.save(self.model.state_dict(), self.run_dir / "best.pt")
                 self.history.append({"step": self.step, "val_dcm": score})
-                self.log(
-                    f"  val DCM {score:.2f} %{'  (best so far: saved)' if improved else f'  (best {self.best:.2f} %)'}"
-                )
                 self.elapsed = time.monotonic() - started
                 self._checkpoint()
+                best = "best so far: saved" if improved else f"best {self.best:.2f} %"
+                self.log(f"  val DCM {score:.2f} %  ({best}); checkpoint at step {self.step}")
         summary = {
             "name": c.name,
             "epsilon": self.epsilon,
