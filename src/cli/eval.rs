@@ -24,7 +24,7 @@ pub struct EvalArgs {
     /// Write the results as JSON here.
     #[arg(long)]
     output: Option<PathBuf>,
-    /// Requests of the split timed one at a time after scoring (0: no timing).
+    /// Requests of the split (spread evenly over it) timed one at a time after scoring (0: no timing).
     #[arg(long, default_value_t = 200)]
     latency_samples: usize,
 }
@@ -107,12 +107,10 @@ pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
             grasps: sample.grasps(),
             ..Request::default()
         };
-        let wanted = args.latency_samples.saturating_sub(timed.len());
         timed.extend(
             samples
                 .iter()
                 .filter(|(s, _)| in_split(s) && !s.failed())
-                .take(wanted)
                 .map(|(s, _)| request_of(s)),
         );
         let scored: Vec<(String, SampleError)> = samples
@@ -173,6 +171,13 @@ pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
         }
     }
     println!("  (DCM: volume-weighted, DESIGN.md §6; code: the paper's code form, comparable with its tables)");
+    // Time a sample spread evenly over the split: single- and two-grasper requests in proportion.
+    let stride = timed.len().div_ceil(args.latency_samples.max(1)).max(1);
+    let timed: Vec<Request> = if args.latency_samples == 0 {
+        Vec::new()
+    } else {
+        timed.into_iter().step_by(stride).collect()
+    };
     let latency = time_requests(engine, &timed)?;
     if let Some(l) = &latency {
         println!(
