@@ -102,10 +102,11 @@ def table(entries: list[Entry], key: str, baselines: dict[str, dict[str, Any]], 
             lines.append(f"| {label} (paper, GPU) | " + " | ".join(paper) + " |")
     for name, metrics in baselines.items():
         values = [metrics.get(f"{key}_{subset}") for _, subset, _ in COLUMNS]
-        cells = [("–" if v is None else f"{v:.2f}") for v in values for _ in METHODS]
+        # No training: one figure per column group, under Base.
+        cells = [("–" if v is None else f"{v:.2f}") if m == "base" else "" for v in values for m in METHODS]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     if with_paper:
-        cells = [f"{PAPER_KELVINLET[trained]:.2f}" for trained, _, _ in COLUMNS for _ in METHODS]
+        cells = [f"{PAPER_KELVINLET[trained]:.2f}" if m == "base" else "" for trained, _, _ in COLUMNS for m in METHODS]
         lines.append("| Kelvinlet (paper) | " + " | ".join(cells) + " |")
     return lines
 
@@ -172,7 +173,8 @@ def write_report(data: Path, models: list[Path], nak: Path, mesh: Path, out: Pat
         "paper's ε; scored, not served). Their `[metrics]` come from `nak eval` on the test split; the",
         "baselines are scored by `nak eval` when the page is made.",
         f"Dataset: `{data}` (`nak datagen --regime linear --preset paper --seed 0`). Times: the serving",
-        "engine's time per request (`nak eval`, 200 test requests one at a time) on this machine's 2 vCPUs.",
+        "engine's time per request (`nak eval`: about 200 test requests spread over the split, one at a",
+        "time) on this machine's 2 vCPUs.",
         "",
         "## DCM in the paper's code form (comparable with its Table 2)",
         "",
