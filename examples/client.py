@@ -1,6 +1,7 @@
 """A minimal nak client in Python (grpcio): fetch the mesh, lift grasp region 4 by 2 cm, read the field.
 
-Start a server (cargo run --release -- serve), then: python examples/client.py [127.0.0.1:50051]
+Start a server (cargo run --release -- serve), then: python examples/client.py [127.0.0.1:50051 [MODEL]]
+MODEL defaults to the most accurate network shipped with the phantom; `kelvinlet` is the prior alone.
 The stubs are generated from proto/ at start-up with grpcio-tools, so nothing generated is committed.
 """
 
@@ -31,7 +32,10 @@ def load_stubs() -> tuple[ModuleType, ModuleType]:
     return importlib.import_module("nak.v1.deformation_pb2"), importlib.import_module("nak.v1.deformation_pb2_grpc")
 
 
-def main(target: str = "127.0.0.1:50051") -> np.ndarray:
+BEST_MODEL = "pointnet-res"
+
+
+def main(target: str = "127.0.0.1:50051", model: str = BEST_MODEL) -> np.ndarray:
     pb, rpc = load_stubs()
     with grpc.insecure_channel(target) as channel:
         stub = rpc.DeformationStub(channel)
@@ -39,13 +43,13 @@ def main(target: str = "127.0.0.1:50051") -> np.ndarray:
         positions = np.frombuffer(mesh.positions, dtype="<f4").reshape(-1, 3)
         grasp_04 = next(s for s in mesh.node_sets if s.name == "grasp_04")
         request = pb.PredictRequest(
-            model="kelvinlet",
+            model=model,
             grasps=[pb.Grasp(nodes=list(grasp_04.nodes)[:10], displacement=pb.Vec3(x=0.0, y=0.02, z=0.0))],
         )
         response = stub.Predict(request)
         u = np.frombuffer(response.displacements, dtype="<f4").reshape(-1, 3)
         print(
-            f"{len(positions)} nodes; {response.interaction_points} interaction points; "
+            f"{model}: {len(positions)} nodes; {response.interaction_points} interaction points; "
             f"largest displacement {1e3 * np.linalg.norm(u, axis=1).max():.1f} mm; "
             f"server {response.timing.total_us:.0f} µs"
         )
@@ -53,4 +57,4 @@ def main(target: str = "127.0.0.1:50051") -> np.ndarray:
 
 
 if __name__ == "__main__":
-    main(*sys.argv[1:2])
+    main(*sys.argv[1:3])

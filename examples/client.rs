@@ -1,6 +1,7 @@
 //! A minimal nak client: fetch the mesh, lift grasp region 4 by 2 cm, print what came back.
 //!
-//! Start a server (`cargo run --release -- serve`), then `cargo run --release --example client`.
+//! Start a server (`cargo run --release -- serve`), then `cargo run --release --example client [URL [MODEL]]`.
+//! MODEL defaults to the most accurate network shipped with the phantom; `kelvinlet` is the prior alone.
 
 use nak::proto::v1::deformation_client::DeformationClient;
 use nak::proto::v1::{GetMeshRequest, Grasp, PredictRequest, Vec3};
@@ -10,6 +11,7 @@ async fn main() -> anyhow::Result<()> {
     let target = std::env::args()
         .nth(1)
         .unwrap_or_else(|| "http://127.0.0.1:50051".into());
+    let model = std::env::args().nth(2).unwrap_or_else(|| "pointnet-res".into());
     let mut client = DeformationClient::connect(target).await?;
     let mesh = client.get_mesh(GetMeshRequest::default()).await?.into_inner();
     let grasp_04 = mesh
@@ -18,7 +20,7 @@ async fn main() -> anyhow::Result<()> {
         .find(|s| s.name == "grasp_04")
         .ok_or_else(|| anyhow::anyhow!("the mesh has no grasp_04"))?;
     let request = PredictRequest {
-        model: "kelvinlet".into(),
+        model,
         grasps: vec![Grasp {
             nodes: grasp_04.nodes.iter().take(10).copied().collect(),
             displacement: Some(Vec3 {

@@ -3,11 +3,20 @@
 from __future__ import annotations
 
 import client
+import numpy as np
 
 
 def test_python_client_reads_a_full_field(nak_server: str) -> None:
-    u = client.main(nak_server)
+    u = client.main(nak_server, "kelvinlet")
     assert u.shape[1] == 3 and u.shape[0] > 9_500
     # Grasp region 4 is lifted by 2 cm: the largest displacement is about that.
     largest = float((u**2).sum(axis=1).max() ** 0.5)
     assert 0.019 < largest < 0.021
+
+
+def test_python_client_asks_the_best_shipped_network_by_default(nak_server: str) -> None:
+    u = client.main(nak_server)
+    assert u.shape[1] == 3 and u.shape[0] > 9_500 and np.isfinite(u).all()
+    # A network does not pin the grasped nodes exactly, but lifts the region by about 2 cm.
+    largest = float((u**2).sum(axis=1).max() ** 0.5)
+    assert 0.01 < largest < 0.04, largest
