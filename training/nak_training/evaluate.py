@@ -64,7 +64,10 @@ def evaluate(model_dir: Path, data: Path, nak: Path, mesh: Path) -> dict[str, An
     except (OSError, tomllib.TOMLDecodeError) as e:
         raise TrainingInputError(manifest_path, f"unreadable manifest ({e})") from e
     name = manifest["model"]["name"]
-    report = nak_eval(nak, data, name, mesh, model_dir.parent)
+    # nak loads every model under --models: give it a directory holding only this one.
+    with tempfile.TemporaryDirectory() as alone:
+        (Path(alone) / model_dir.name).symlink_to(model_dir.resolve(), target_is_directory=True)
+        report = nak_eval(nak, data, name, mesh, Path(alone))
     metrics = {"val_dcm": manifest.get("metrics", {}).get("val_dcm"), **metrics_of(report)}
     written = {k: v for k, v in metrics.items() if v is not None}
     manifest["metrics"] = written

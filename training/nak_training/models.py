@@ -11,6 +11,7 @@ the same input `[x, 0, 0]` in every sample (see `forward_split`). Inputs are raw
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import torch
@@ -69,9 +70,8 @@ class SetNet(nn.Module):
 
     row_wise = True
 
-    def __init__(self, size: str) -> None:
+    def __init__(self) -> None:
         super().__init__()
-        self.size = size
         self.normalizer = Normalizer()
 
     def encode(self, f: torch.Tensor, pooled: bool) -> Encoded:
@@ -173,7 +173,7 @@ class PointNet(SetNet):
     """Per-node MLP, global max-pool, and a head over [node feature, global feature] (DESIGN.md §10)."""
 
     def __init__(self, size: str) -> None:
-        super().__init__(size)
+        super().__init__()
         if size == "paper":
             local, glob, head, with_stn = [CHANNELS, 64], [64, 128, 1024], [1088, 512, 256], True
         else:
@@ -207,7 +207,7 @@ class DeepSetUNet(SetNet):
     bottleneck pooled over the set (mean and max), then levels back up with skip connections."""
 
     def __init__(self, size: str) -> None:
-        super().__init__(size)
+        super().__init__()
         widths = [64, 128, 256, 512] if size == "paper" else [32, 64, 128]
         self.down = nn.ModuleList(mlp([a, b]) for a, b in zip([CHANNELS, *widths[:-1]], widths, strict=True))
         up_in = [3 * widths[-1]] + [2 * w for w in reversed(widths[:-1])]
@@ -328,7 +328,7 @@ class SetAttentionNet(SetNet):
     The `cpu` size has one block, so its encoder is row-wise."""
 
     def __init__(self, size: str) -> None:
-        super().__init__(size)
+        super().__init__()
         d, heads, inducing, blocks = (128, 4, 32, 2) if size == "paper" else (64, 4, 16, 1)
         self.embed = mlp([CHANNELS, d, d])
         self.blocks = nn.ModuleList(ISAB(d, heads, inducing) for _ in range(blocks))
@@ -358,7 +358,7 @@ class SetAttentionNet(SetNet):
         return self.head(last.spread(x, summary.reshape(x.shape[0], -1, x.shape[-1])))
 
 
-ARCHITECTURES: dict[str, type[SetNet]] = {
+ARCHITECTURES: dict[str, Callable[[str], SetNet]] = {
     "pointnet": PointNet,
     "deepset": DeepSetUNet,
     "isab": SetAttentionNet,

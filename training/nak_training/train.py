@@ -221,9 +221,10 @@ class Trainer:
         nodes = [torch.from_numpy(s.nodes) for s in samples]
         displacements = [torch.from_numpy(s.displacements) for s in samples]
         query = torch.randperm(self.mesh.node_count, generator=g)[: c.query_nodes]
-        target = self.train.fields[picks][:, query]
+        rows = (picks[:, None], query[None, :])
+        target = self.train.fields[rows]
         if self.train_prior is not None:
-            target = target - self.train_prior[picks][:, query]
+            target = target - self.train_prior[rows]
         if self.q is not None:
             # q samples ride in the same forward pass: the nodes at rest are encoded once for both.
             q_nodes, q_displacements = self.q.draw(c.q_batch)
