@@ -52,8 +52,15 @@ fn embed_shipped_models(out_dir: &std::path::Path) -> Result<(), Box<dyn std::er
             .file_name()
             .and_then(|n| n.to_str())
             .ok_or("model directory name is not UTF-8")?;
+        let basis = dir.join("basis.safetensors");
+        let basis = if basis.is_file() {
+            format!("Some(include_bytes!({basis:?}))")
+        } else {
+            "None".to_owned()
+        };
         code.push_str(&format!(
-            "    ShippedModel {{ name: {name:?}, manifest: include_str!({:?}), onnx: include_bytes!({:?}) }},\n",
+            "    ShippedModel {{ name: {name:?}, files: ModelFiles {{ manifest: include_str!({:?}), \
+             onnx: include_bytes!({:?}), basis: {basis} }} }},\n",
             dir.join("manifest.toml"),
             dir.join("model.onnx")
         ));

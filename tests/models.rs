@@ -4,87 +4,17 @@
 
 mod common;
 
-use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
+use common::models::{coarse, copy_model, engine_with_models, load_error, ort, predict, test_models, two_graspers};
 use common::server::TestServer;
 use nak::engine::DeformationModel;
 use nak::engine::{Engine, Grasp, Limits, Request, Selection};
 use nak::mesh::PriorParams;
-use nak::mesh::{self, MeshSource, TetMesh};
 use nak::model::{self, OnnxModel};
 use nak::prior::{InteractionPoints, Kelvinlet, NodeCloud, Workspace};
 use nak::proto::v1 as pb;
 use tonic::Code;
-
-fn coarse() -> Arc<TetMesh> {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/phantom-liver/liver-coarse.msh");
-    Arc::new(mesh::load(&MeshSource::File(path)).unwrap())
-}
-
-fn test_models() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/models")
-}
-
-fn ort() -> Option<&'static Path> {
-    assert!(
-        std::env::var_os("ORT_DYLIB_PATH").is_some(),
-        "ORT_DYLIB_PATH is not set: run scripts/test, or export ORT_DYLIB_PATH=$(scripts/onnxruntime-path)"
-    );
-    None
-}
-
-fn engine_with_models(mesh: Arc<TetMesh>) -> Engine {
-    let mut engine = Engine::new(mesh.clone(), Limits::default());
-    for m in model::load_all(&test_models().join("phantom-liver-coarse"), &mesh, ort()).unwrap() {
-        engine.add_model(Arc::new(m));
-    }
-    engine
-}
-
-fn two_graspers(mesh: &TetMesh) -> Vec<Grasp> {
-    let grasp = |set: &str, u: [f64; 3]| Grasp {
-        nodes: mesh.node_sets[set].iter().take(10).copied().collect(),
-        displacement: u,
-        ..Default::default()
-    };
-    vec![
-        grasp("grasp_03", [0.01, 0.03, -0.01]),
-        grasp("grasp_08", [-0.02, 0.02, 0.015]),
-    ]
-}
-
-fn predict(engine: &Engine, model: &str, selection: Selection) -> Vec<f32> {
-    let request = Request {
-        model: model.into(),
-        grasps: two_graspers(engine.mesh()),
-        selection,
-        ..Default::default()
-    };
-    engine.predict(&request).unwrap().displacements
-}
-
-/// A copy of a test model in a fresh directory, to break one thing in it.
-fn copy_model(name: &str) -> (tempfile::TempDir, PathBuf) {
-    let root = tempfile::tempdir().unwrap();
-    let dir = root.path().join(name);
-    std::fs::create_dir(&dir).unwrap();
-    for file in ["manifest.toml", "model.onnx"] {
-        std::fs::copy(
-            test_models().join("phantom-liver-coarse").join(name).join(file),
-            dir.join(file),
-        )
-        .unwrap();
-    }
-    (root, dir)
-}
-
-fn load_error(dir: &Path) -> String {
-    match OnnxModel::load(dir, &coarse(), ort()) {
-        Ok(_) => panic!("{} was accepted", dir.display()),
-        Err(e) => e.to_string(),
-    }
-}
 
 #[test]
 fn every_test_model_loads_and_is_listed_with_its_manifest() {
@@ -97,7 +27,10 @@ fn every_test_model_loads_and_is_listed_with_its_manifest() {
             "mlp-direct-prior",
             "mlp-residual",
             "pointnet-direct",
-            "pointnet-residual"
+            "pointnet-residual",
+            "reduced-folded",
+            "reduced-residual",
+            "reduced-residual-f16"
         ]
     );
     let mlp = engine.models().find(|m| m.name == "mlp-residual").unwrap();

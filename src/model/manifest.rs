@@ -39,7 +39,8 @@ impl Method {
     }
 }
 
-/// Input channel groups, in the order they appear in `features`.
+/// Input channel groups, in the order they appear in `features`; or `interaction`, the K interaction
+/// points alone (rest position and prescribed displacement, DESIGN.md §7).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Channel {
@@ -47,12 +48,14 @@ pub enum Channel {
     Displacement,
     Active,
     Prior,
+    Interaction,
 }
 
 impl Channel {
     pub fn width(self) -> usize {
         match self {
             Channel::Active => 1,
+            Channel::Interaction => 6,
             _ => 3,
         }
     }
@@ -98,13 +101,13 @@ impl Manifest {
     pub fn parse(text: &str, origin: &str) -> Result<Self, ModelLoadError> {
         let manifest: Manifest = toml::from_str(text).map_err(|e| ModelLoadError::new(origin, e.to_string()))?;
         let inputs = &manifest.model.inputs;
-        let prior_only_last = matches!(&inputs[..], [a, b, c] | [a, b, c, Channel::Prior] if [*a, *b, *c] == REQUIRED);
-        if !prior_only_last {
+        let per_node = matches!(&inputs[..], [a, b, c] | [a, b, c, Channel::Prior] if [*a, *b, *c] == REQUIRED);
+        if !per_node && inputs[..] != [Channel::Interaction] {
             return Err(ModelLoadError::new(
                 origin,
                 format!(
                     "model.inputs = {inputs:?}: the contract is [\"position\", \"displacement\", \"active\"], \
-                     optionally followed by \"prior\""
+                     optionally followed by \"prior\", or [\"interaction\"]"
                 ),
             ));
         }
@@ -144,7 +147,12 @@ impl Manifest {
         Ok(manifest)
     }
 
-    /// Channels per node in `features`.
+    /// Whether the graph reads the interaction points alone (`interaction`) rather than `features`.
+    pub fn reads_interaction(&self) -> bool {
+        self.model.inputs == [Channel::Interaction]
+    }
+
+    /// Channels per node in `features` (per point in `interaction`).
     pub fn channels(&self) -> usize {
         self.model.inputs.iter().map(|c| c.width()).sum()
     }

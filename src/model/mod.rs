@@ -1,14 +1,17 @@
 //! ONNX-exported networks under the model contract (DESIGN.md §7): manifests, discovery and serving.
 
+pub mod basis;
 pub mod manifest;
 pub mod onnx;
 pub mod runtime;
 pub mod shipped;
+pub mod signature;
 
 use std::path::{Path, PathBuf};
 
+pub use basis::Basis;
 pub use manifest::{Channel, Manifest, Method, Mode};
-pub use onnx::OnnxModel;
+pub use onnx::{ModelFiles, OnnxModel};
 
 use crate::mesh::TetMesh;
 

@@ -1,4 +1,6 @@
-//! A network served through ONNX Runtime under the model contract (DESIGN.md §7).
+//! A network served through ONNX Runtime under the model contract (DESIGN.md §7), in either form:
+//! `features` over every node, or `interaction` over the K interaction points alone (whose output is
+//! the field itself or the coefficients of a [`Basis`] beside the graph).
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -7,21 +9,30 @@ use std::time::Instant;
 
 use ort::session::Session;
 use ort::session::builder::GraphOptimizationLevel;
-use ort::value::{Outlet, TensorRef, ValueType};
+use ort::value::TensorRef;
 
 use super::ModelLoadError;
+use super::basis::{self, Basis};
 use super::manifest::{Manifest, Mode};
+use super::signature::{self, COEFFICIENTS, DISPLACEMENT, FEATURES, INTERACTION, Input, Output, Signature};
 use crate::engine::{DeformationModel, ModelError, ModelInfo, ModelKind, StageTiming, Target};
 use crate::mesh::TetMesh;
 use crate::prior::{InteractionPoints, Kelvinlet, NodeCloud, Workspace};
 
-pub const INPUT: &str = "features";
-pub const OUTPUT: &str = "displacement";
+/// A model directory's files, read: `manifest.toml`, `model.onnx` and, for graphs that output
+/// coefficients, `basis.safetensors`.
+#[derive(Clone, Copy)]
+pub struct ModelFiles<'a> {
+    pub manifest: &'a str,
+    pub onnx: &'a [u8],
+    pub basis: Option<&'a [u8]>,
+}
 
-/// Per-request buffers, pooled: the feature tensor and, for models that read it, the prior field.
+/// Per-request buffers, pooled.
 struct Buffers {
-    /// [N, C], row-major; positions are filled once, the rest per request.
-    features: Vec<f32>,
+    /// `features` [N, C] row-major, positions filled once (features form); `interaction` [K, 6]
+    /// (interaction form).
+    input: Vec<f32>,
     /// Nodes whose displacement/active channels the last request set, to clear them in O(K).
     dirty: Vec<u32>,
     /// [N, 3] prior over all nodes (models reading the prior only).
@@ -34,6 +45,9 @@ struct Buffers {
 pub struct OnnxModel {
     info: ModelInfo,
     mode: Mode,
+    signature: Signature,
+    /// Φ for graphs whose output is `coefficients`.
+    basis: Option<Basis>,
     reads_prior: bool,
     channels: usize,
     node_count: usize,
@@ -41,33 +55,46 @@ pub struct OnnxModel {
     all_nodes: NodeCloud,
     /// `Session::run` needs exclusive access; one request at a time per model.
     session: Mutex<Session>,
-    /// Buffers with positions already written, to copy when the pool is empty.
+    /// The features form's input with positions already written, to copy when the pool is empty.
     template: Vec<f32>,
     pool: Mutex<Vec<Buffers>>,
 }
 
 impl OnnxModel {
-    /// Loads `dir/model.onnx` under `dir/manifest.toml`, validates both against `mesh`, warms up.
+    /// Loads `dir/model.onnx` (and `dir/basis.safetensors` if there is one) under `dir/manifest.toml`,
+    /// validates them against `mesh`, warms up.
     pub fn load(dir: &Path, mesh: &TetMesh, ort_dylib: Option<&Path>) -> Result<Self, ModelLoadError> {
-        let manifest_path = dir.join("manifest.toml");
-        let text = std::fs::read_to_string(&manifest_path)
-            .map_err(|e| ModelLoadError::new(&manifest_path.display().to_string(), e.to_string()))?;
-        let onnx_path = dir.join("model.onnx");
-        let onnx = std::fs::read(&onnx_path)
-            .map_err(|e| ModelLoadError::new(&onnx_path.display().to_string(), e.to_string()))?;
-        Self::from_parts(&dir.display().to_string(), &text, &onnx, mesh, ort_dylib)
+        let read = |name: &str| {
+            let path = dir.join(name);
+            std::fs::read(&path).map_err(|e| ModelLoadError::new(&path.display().to_string(), e.to_string()))
+        };
+        let manifest = read("manifest.toml")?;
+        let manifest = String::from_utf8(manifest)
+            .map_err(|e| ModelLoadError::new(&dir.join("manifest.toml").display().to_string(), e.to_string()))?;
+        let onnx = read("model.onnx")?;
+        let basis = if dir.join(basis::FILE).exists() {
+            Some(read(basis::FILE)?)
+        } else {
+            None
+        };
+        let files = ModelFiles {
+            manifest: &manifest,
+            onnx: &onnx,
+            basis: basis.as_deref(),
+        };
+        Self::from_parts(&dir.display().to_string(), files, mesh, ort_dylib)
     }
 
-    /// Builds a model from a manifest's text and a graph's bytes; `origin` names them in errors
-    /// (`origin/manifest.toml`, `origin/model.onnx`).
+    /// Builds a model from its files' contents; `origin` names them in errors (`origin/manifest.toml`,
+    /// `origin/model.onnx`, `origin/basis.safetensors`).
     pub fn from_parts(
         origin: &str,
-        manifest_text: &str,
-        onnx: &[u8],
+        files: ModelFiles<'_>,
         mesh: &TetMesh,
         ort_dylib: Option<&Path>,
     ) -> Result<Self, ModelLoadError> {
-        let manifest = Manifest::parse(manifest_text, &format!("{origin}/manifest.toml"))?;
+        let manifest_path = format!("{origin}/manifest.toml");
+        let manifest = Manifest::parse(files.manifest, &manifest_path)?;
         manifest.check_against(mesh, origin)?;
         let onnx_path = format!("{origin}/model.onnx");
         let environment = super::runtime::environment(ort_dylib)?;
@@ -78,18 +105,44 @@ impl OnnxModel {
             })
             .and_then(|b| b.with_intra_threads(threads()).map_err(Into::into))
             .and_then(|b| b.with_intra_op_spinning(false).map_err(Into::into))
-            .and_then(|mut b| b.commit_from_memory(onnx))
+            .and_then(|mut b| b.commit_from_memory(files.onnx))
             .map_err(|e| ModelLoadError::new(&onnx_path, format!("ONNX Runtime cannot load it: {e}")))?;
         let n = mesh.node_count();
-        check_signature(&session, manifest.channels(), n, &onnx_path)?;
-
         let channels = manifest.channels();
-        let mut template = vec![0.0f32; n * channels];
-        for (row, p) in template.chunks_exact_mut(channels).zip(&mesh.positions) {
-            for k in 0..3 {
-                row[k] = p[k] as f32;
-            }
+        let signature = signature::read(&session, channels, n, &onnx_path)?;
+        let declared = if manifest.reads_interaction() {
+            Input::Interaction
+        } else {
+            Input::Features
+        };
+        if signature.input != declared {
+            return Err(ModelLoadError::new(
+                &manifest_path,
+                format!(
+                    "model.inputs = {:?} does not match the graph, whose input is {:?}",
+                    manifest.model.inputs,
+                    if signature.input == Input::Features {
+                        FEATURES
+                    } else {
+                        INTERACTION
+                    }
+                ),
+            ));
         }
+        let basis = load_basis(origin, files.basis, signature.output, mesh)?;
+
+        let template = match signature.input {
+            Input::Features => {
+                let mut template = vec![0.0f32; n * channels];
+                for (row, p) in template.chunks_exact_mut(channels).zip(&mesh.positions) {
+                    for k in 0..3 {
+                        row[k] = p[k] as f32;
+                    }
+                }
+                template
+            }
+            Input::Interaction => Vec::new(),
+        };
         let mut metadata: BTreeMap<String, String> = BTreeMap::new();
         metadata.insert("mode".into(), format!("{:?}", manifest.model.mode).to_lowercase());
         metadata.insert("method".into(), format!("{:?}", manifest.model.method).to_lowercase());
@@ -98,6 +151,10 @@ impl OnnxModel {
         metadata.insert("prior.epsilon_m".into(), prior.epsilon.to_string());
         metadata.insert("prior.lambda".into(), prior.lambda.to_string());
         metadata.insert("inputs".into(), format!("{:?}", manifest.model.inputs).to_lowercase());
+        if let Some(basis) = &basis {
+            metadata.insert("basis.modes".into(), basis.modes().to_string());
+            metadata.insert("basis.precision".into(), basis.precision().into());
+        }
         metadata.insert("description".into(), manifest.model.description.clone());
         for (section, values) in [("metrics", &manifest.metrics), ("provenance", &manifest.provenance)] {
             for (k, v) in values {
@@ -113,6 +170,8 @@ impl OnnxModel {
                 metadata,
             },
             mode: manifest.model.mode,
+            signature,
+            basis,
             reads_prior: manifest.reads_prior(),
             channels,
             node_count: n,
@@ -123,16 +182,26 @@ impl OnnxModel {
             pool: Mutex::new(Vec::new()),
         };
         model
-            .warm_up()
+            .warm_up(mesh)
             .map_err(|e| ModelLoadError::new(origin, format!("warm-up failed: {e}")))?;
         Ok(model)
     }
 
-    /// One inference on the rest state (nothing grasped): allocates ONNX Runtime's arenas and checks
-    /// the output shape before the first client waits on it.
-    fn warm_up(&self) -> Result<(), ModelError> {
+    /// One inference before the first client waits on it: allocates ONNX Runtime's arenas and checks
+    /// the output's shape (on the rest state, or one surface node pulled 1 mm for the interaction form,
+    /// which has no empty input).
+    fn warm_up(&self, mesh: &TetMesh) -> Result<(), ModelError> {
         let mut buffers = self.take_buffers();
-        let result = self.run_network(&buffers.features, |_| Ok(()));
+        let result = match self.signature.input {
+            Input::Features => self.run_network(&buffers.input, 0, |_| Ok(())),
+            Input::Interaction => {
+                let mut points = InteractionPoints::default();
+                let node = mesh.surface_nodes.first().copied().unwrap_or(0);
+                points.push(node, mesh.positions[node as usize], [0.0, 0.0, 0.001]);
+                fill_interaction(&points, &mut buffers.input);
+                self.run_network(&buffers.input, 1, |_| Ok(()))
+            }
+        };
         buffers.dirty.clear();
         self.return_buffers(buffers);
         result
@@ -141,7 +210,7 @@ impl OnnxModel {
     fn take_buffers(&self) -> Buffers {
         let pooled = self.pool.lock().ok().and_then(|mut pool| pool.pop());
         pooled.unwrap_or_else(|| Buffers {
-            features: self.template.clone(),
+            input: self.template.clone(),
             dirty: Vec::new(),
             prior: if self.reads_prior {
                 vec![0.0; 3 * self.node_count]
@@ -163,11 +232,11 @@ impl OnnxModel {
     fn fill_features(&self, points: &InteractionPoints, buffers: &mut Buffers) {
         let c = self.channels;
         for &n in &buffers.dirty {
-            buffers.features[n as usize * c + 3..n as usize * c + 7].fill(0.0);
+            buffers.input[n as usize * c + 3..n as usize * c + 7].fill(0.0);
         }
         buffers.dirty.clear();
         for (&n, u) in points.nodes.iter().zip(&points.displacements) {
-            let row = &mut buffers.features[n as usize * c..(n as usize + 1) * c];
+            let row = &mut buffers.input[n as usize * c..(n as usize + 1) * c];
             row[3] = u[0] as f32;
             row[4] = u[1] as f32;
             row[5] = u[2] as f32;
@@ -175,88 +244,110 @@ impl OnnxModel {
             buffers.dirty.push(n);
         }
         if self.reads_prior {
-            for (row, u) in buffers.features.chunks_exact_mut(c).zip(buffers.prior.chunks_exact(3)) {
+            for (row, u) in buffers.input.chunks_exact_mut(c).zip(buffers.prior.chunks_exact(3)) {
                 row[7..10].copy_from_slice(u);
             }
         }
     }
 
-    /// Runs the session on `features` and hands the [N, 3] output to `consume`.
+    /// Runs the session on `input` (`features` [1, N, C], or `interaction` [1, k, 6]) and hands the
+    /// output's values to `consume`, after checking their shape.
     fn run_network(
         &self,
-        features: &[f32],
+        input: &[f32],
+        k: usize,
         consume: impl FnOnce(&[f32]) -> Result<(), ModelError>,
     ) -> Result<(), ModelError> {
-        let input = TensorRef::from_array_view(([1usize, self.node_count, self.channels], features))
-            .map_err(|e| ModelError::Runtime(format!("cannot wrap the features: {e}")))?;
+        let (name, shape) = match self.signature.input {
+            Input::Features => (FEATURES, [1usize, self.node_count, self.channels]),
+            Input::Interaction => (INTERACTION, [1usize, k, signature::INTERACTION_WIDTH]),
+        };
+        let tensor = TensorRef::from_array_view((shape, input))
+            .map_err(|e| ModelError::Runtime(format!("cannot wrap the {name} input: {e}")))?;
         let mut session = self
             .session
             .lock()
             .map_err(|_| ModelError::Runtime("the session was poisoned by an earlier panic".into()))?;
         let outputs = session
-            .run(ort::inputs![INPUT => input])
+            .run(ort::inputs![name => tensor])
             .map_err(|e| ModelError::Runtime(e.to_string()))?;
-        let (shape, values) = outputs[OUTPUT]
+        let (output, expected) = match (self.signature.output, &self.basis) {
+            (Output::Coefficients { .. }, Some(basis)) => (COEFFICIENTS, vec![1, basis.modes() as i64]),
+            _ => (DISPLACEMENT, vec![1, self.node_count as i64, 3]),
+        };
+        let (shape, values) = outputs[output]
             .try_extract_tensor::<f32>()
-            .map_err(|e| ModelError::Runtime(format!("output {OUTPUT}: {e}")))?;
-        if shape[..] != [1, self.node_count as i64, 3] {
+            .map_err(|e| ModelError::Runtime(format!("output {output}: {e}")))?;
+        if shape[..] != expected[..] {
             return Err(ModelError::Runtime(format!(
-                "output {OUTPUT} has shape {shape:?}, expected [1, {}, 3]",
-                self.node_count
+                "output {output} has shape {shape:?}, expected {expected:?}"
             )));
         }
         consume(values)
     }
 }
 
-fn threads() -> usize {
-    std::thread::available_parallelism().map_or(1, |n| n.get())
+/// A graph outputs `coefficients` exactly when a basis lies beside it; the basis must fit the mesh and
+/// the graph's M.
+fn load_basis(
+    origin: &str,
+    bytes: Option<&[u8]>,
+    output: Output,
+    mesh: &TetMesh,
+) -> Result<Option<Basis>, ModelLoadError> {
+    let path = format!("{origin}/{}", basis::FILE);
+    match (output, bytes) {
+        (Output::Displacement, None) => Ok(None),
+        (Output::Displacement, Some(_)) => Err(ModelLoadError::new(
+            &path,
+            format!(
+                "a basis beside a graph whose output is {DISPLACEMENT:?}, not {COEFFICIENTS:?}: which one is meant?"
+            ),
+        )),
+        (Output::Coefficients { .. }, None) => Err(ModelLoadError::new(
+            &path,
+            format!("missing: the graph outputs {COEFFICIENTS:?}, which need the basis they weigh"),
+        )),
+        (Output::Coefficients { modes }, Some(bytes)) => {
+            let basis = Basis::parse(bytes, mesh, &path)?;
+            if let Some(m) = modes.filter(|&m| m != basis.modes()) {
+                return Err(ModelLoadError::new(
+                    &path,
+                    format!("has {} modes; the graph gives {m} coefficients", basis.modes()),
+                ));
+            }
+            Ok(Some(basis))
+        }
+    }
 }
 
-/// The graph must take `features` [B, N, C] and give `displacement` [B, N, 3], f32, with N and B either
-/// fixed to the mesh's values (N, 1) or symbolic.
-fn check_signature(session: &Session, channels: usize, n: usize, origin: &str) -> Result<(), ModelLoadError> {
-    let describe = |outlets: &[Outlet]| {
-        outlets
-            .iter()
-            .map(|o| format!("{} {:?}", o.name(), o.dtype().tensor_shape().map(|s| s.to_vec())))
-            .collect::<Vec<_>>()
-            .join(", ")
-    };
-    let check = |outlets: &[Outlet], name: &str, last: usize, what: &str| {
-        let [outlet] = outlets else {
-            return Err(ModelLoadError::new(
-                origin,
-                format!("expected one {what} named {name:?}, found: {}", describe(outlets)),
-            ));
-        };
-        if outlet.name() != name {
-            return Err(ModelLoadError::new(
-                origin,
-                format!(
-                    "the {what} is named {:?}; the model contract names it {name:?}",
-                    outlet.name()
-                ),
-            ));
+/// Writes each interaction point's rest position and prescribed displacement, [K, 6] row-major.
+fn fill_interaction(points: &InteractionPoints, input: &mut Vec<f32>) {
+    input.clear();
+    for (p, u) in points.positions.iter().zip(&points.displacements) {
+        input.extend(p.iter().chain(u).map(|&v| v as f32));
+    }
+}
+
+/// Copies (or adds, with `add`) the rows of `target`'s nodes from a whole-mesh field [N, 3] into `out`.
+fn gather(field: &[f32], target: Target<'_>, out: &mut [f32], add: bool) {
+    let copy = |dst: &mut [f32], n: usize| {
+        let src = &field[3 * n..3 * n + 3];
+        for k in 0..3 {
+            dst[k] = if add { dst[k] + src[k] } else { src[k] };
         }
-        let ValueType::Tensor { ty, shape, .. } = outlet.dtype() else {
-            return Err(ModelLoadError::new(origin, format!("{what} {name:?} is not a tensor")));
-        };
-        let fits = |dim: i64, want: usize| dim < 0 || dim == want as i64;
-        let ok_shape = shape.len() == 3 && fits(shape[0], 1) && fits(shape[1], n) && shape[2] == last as i64;
-        if *ty != ort::value::TensorElementType::Float32 || !ok_shape {
-            return Err(ModelLoadError::new(
-                origin,
-                format!(
-                    "{what} {name:?} is {ty:?} {:?}; expected Float32 [batch, {n} (or symbolic), {last}]",
-                    shape.to_vec()
-                ),
-            ));
-        }
-        Ok(())
     };
-    check(session.inputs(), INPUT, channels, "input")?;
-    check(session.outputs(), OUTPUT, 3, "output")
+    match target.nodes {
+        None => out.chunks_exact_mut(3).enumerate().for_each(|(n, dst)| copy(dst, n)),
+        Some(nodes) => out
+            .chunks_exact_mut(3)
+            .zip(nodes)
+            .for_each(|(dst, &n)| copy(dst, n as usize)),
+    }
+}
+
+fn threads() -> usize {
+    std::thread::available_parallelism().map_or(1, |n| n.get())
 }
 
 impl DeformationModel for OnnxModel {
@@ -289,6 +380,22 @@ impl OnnxModel {
         out: &mut [f32],
         timing: &mut StageTiming,
     ) -> Result<(), ModelError> {
+        match self.signature.input {
+            Input::Features => self.predict_features(points, target, workspace, buffers, out, timing),
+            Input::Interaction => self.predict_interaction(points, target, workspace, buffers, out, timing),
+        }
+    }
+
+    /// The features form: the network sees every node, so its cost scales with N.
+    fn predict_features(
+        &self,
+        points: &InteractionPoints,
+        target: Target<'_>,
+        workspace: &mut Workspace,
+        buffers: &mut Buffers,
+        out: &mut [f32],
+        timing: &mut StageTiming,
+    ) -> Result<(), ModelError> {
         if self.reads_prior {
             // The prior is an input: it must be ready, over every node, before the network runs.
             let start = Instant::now();
@@ -298,23 +405,11 @@ impl OnnxModel {
             timing.prior_us = start.elapsed().as_secs_f32() * 1e6;
         }
         self.fill_features(points, buffers);
-        let gather = |network: &[f32], out: &mut [f32], add: bool| {
-            let rows: Box<dyn Iterator<Item = usize>> = match target.nodes {
-                None => Box::new(0..self.node_count),
-                Some(nodes) => Box::new(nodes.iter().map(|&n| n as usize)),
-            };
-            for (dst, n) in out.chunks_exact_mut(3).zip(rows) {
-                let src = &network[3 * n..3 * n + 3];
-                for k in 0..3 {
-                    dst[k] = if add { dst[k] + src[k] } else { src[k] };
-                }
-            }
-        };
-        let features = &buffers.features;
+        let features = &buffers.input;
         let network = |out: &mut [f32], add: bool, network_us: &mut f32| {
             let start = Instant::now();
-            let result = self.run_network(features, |values| {
-                gather(values, out, add);
+            let result = self.run_network(features, 0, |values| {
+                gather(values, target, out, add);
                 Ok(())
             });
             *network_us = start.elapsed().as_secs_f32() * 1e6;
@@ -323,7 +418,7 @@ impl OnnxModel {
         match self.mode {
             Mode::Direct => network(out, false, &mut timing.network_us),
             Mode::Residual if self.reads_prior => {
-                gather(&buffers.prior, out, false);
+                gather(&buffers.prior, target, out, false);
                 network(out, true, &mut timing.network_us)
             }
             Mode::Residual => {
@@ -354,5 +449,38 @@ impl OnnxModel {
                 Ok(())
             }
         }
+    }
+
+    /// The interaction form: the network sees only the K points; the field is its output, or Φ g.
+    /// The prior (residual mode) is written first and the network's share added to it.
+    fn predict_interaction(
+        &self,
+        points: &InteractionPoints,
+        target: Target<'_>,
+        workspace: &mut Workspace,
+        buffers: &mut Buffers,
+        out: &mut [f32],
+        timing: &mut StageTiming,
+    ) -> Result<(), ModelError> {
+        match self.mode {
+            Mode::Residual => {
+                let start = Instant::now();
+                self.prior.solve(points, workspace)?;
+                self.prior.evaluate(&workspace.coefficients, target.cloud, out);
+                timing.prior_us = start.elapsed().as_secs_f32() * 1e6;
+            }
+            Mode::Direct => out.fill(0.0),
+        }
+        let start = Instant::now();
+        fill_interaction(points, &mut buffers.input);
+        let result = self.run_network(&buffers.input, points.len(), |values| {
+            match &self.basis {
+                Some(basis) => basis.add_product(values, target.nodes, out),
+                None => gather(values, target, out, true),
+            }
+            Ok(())
+        });
+        timing.network_us = start.elapsed().as_secs_f32() * 1e6;
+        result
     }
 }

@@ -1,14 +1,13 @@
 //! The networks shipped with the embedded phantom liver (`models/phantom-liver/<name>/`), compiled
 //! into the binary so that `nak serve` answers with them wherever it runs.
 
-use super::{ModelLoadError, OnnxModel};
+use super::{ModelFiles, ModelLoadError, OnnxModel};
 use crate::mesh::TetMesh;
 
-/// One shipped model: its directory name, manifest and graph.
+/// One shipped model: its directory name and files.
 pub struct ShippedModel {
     pub name: &'static str,
-    pub manifest: &'static str,
-    pub onnx: &'static [u8],
+    pub files: ModelFiles<'static>,
 }
 
 include!(concat!(env!("OUT_DIR"), "/embedded_models.rs"));
@@ -19,7 +18,7 @@ pub fn load(mesh: &TetMesh, ort_dylib: Option<&std::path::Path>) -> Result<Vec<O
         .iter()
         .map(|m| {
             let origin = format!("embedded:{}/{}", crate::mesh::EMBEDDED_NAME, m.name);
-            OnnxModel::from_parts(&origin, m.manifest, m.onnx, mesh, ort_dylib)
+            OnnxModel::from_parts(&origin, m.files, mesh, ort_dylib)
         })
         .collect()
 }

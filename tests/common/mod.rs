@@ -1,5 +1,6 @@
 //! Helpers shared by the integration tests.
 #![allow(dead_code)]
 
+pub mod models;
 pub mod msh_fixture;
 pub mod server;

@@ -13,7 +13,15 @@ tests/models/<mesh>/<model>/{model.onnx, manifest.toml} for:
 * pointnet-residual  PointNet-style (per-node MLP, global max-pool, per-node head), residual
 * pointnet-direct    the same, direct
 
-and, for the coarse mesh only, tests/models/faulty/<case>/ models that must be refused or fail.
+and, for the coarse mesh only, models of the `interaction` form (input [B, K, 6]) over a random basis
+of REDUCED_MODES modes:
+
+* reduced-residual       set encoder → `coefficients` [B, M]; basis.safetensors (f32) beside it
+* reduced-residual-f16   the same graph and basis, the basis stored in f16
+* reduced-folded         the same encoder with the basis folded into the graph: `displacement`
+
+(the three give the same field, up to f16 rounding), and tests/models/faulty/<case>/ models that must
+be refused or fail.
 Run from the repository root after `cargo build`: python tests/models/make_models.py
 """
 
@@ -28,6 +36,7 @@ from typing import Any
 import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
+from safetensors.numpy import save_file
 
 ROOT = Path(__file__).resolve().parents[2]
 HERE = Path(__file__).resolve().parent
@@ -39,6 +48,9 @@ PRIOR_CHANNEL = "prior"
 # Per-channel normalization baked into the graph: (value - shift) / scale.
 SHIFT = {"position": [0.0, 0.0, 0.0], "displacement": [0.0] * 3, "active": [0.0], "prior": [0.0] * 3}
 SCALE = {"position": [0.1] * 3, "displacement": [0.05] * 3, "active": [1.0], "prior": [0.05] * 3}
+# Interaction points: rest position (m) and prescribed displacement (m), scaled to order one.
+INTERACTION_SCALE = [0.1] * 3 + [0.05] * 3
+REDUCED_MODES = 12
 # Residuals of a few millimetres: the last layer is scaled so outputs are mm-sized.
 OUTPUT_SCALE = 0.004
 
@@ -112,6 +124,69 @@ def pointnet(g: GraphBuilder, channels: list[str]) -> str:
     return g.linear(h, WIDTH, 3, scale=OUTPUT_SCALE)
 
 
+def set_encoder(g: GraphBuilder, modes: int, width: int = 6) -> str:
+    """`interaction` [B, K, 6] → coefficients [B, modes]: per-point MLP, max over the K points, head."""
+    x = g.op("Div", ["interaction", g.constant(np.array(INTERACTION_SCALE[:width], np.float32))])
+    h = g.op("Relu", [g.linear(x, width, WIDTH)])
+    h = g.op("Relu", [g.linear(h, WIDTH, WIDTH)])
+    pooled = g.op("ReduceMax", [h], axes=[1], keepdims=0)  # [B, WIDTH], whatever K is
+    return g.linear(g.op("Relu", [g.linear(pooled, WIDTH, WIDTH)]), WIDTH, modes)
+
+
+def random_basis(mesh: Mesh, modes: int, seed: int) -> np.ndarray:
+    """Φ [N, 3, M]: smooth enough to be a plausible field, scaled so Φ g is millimetres."""
+    rng = np.random.default_rng(seed)
+    return (rng.standard_normal((mesh.node_count, 3, modes)) * OUTPUT_SCALE).astype(np.float32)
+
+
+def write_reduced(
+    directory: Path,
+    mesh: Mesh,
+    seed: int,
+    description: str,
+    *,
+    folded: bool = False,
+    basis: np.ndarray | None = None,
+    basis_dtype: type = np.float32,
+    basis_hash: str | None = None,
+    modes: int = REDUCED_MODES,
+    width: int = 6,
+) -> None:
+    """A model of the interaction form (DESIGN.md §7); `basis` (default: a random one) goes in the graph
+    (`folded`) or beside it."""
+    g = GraphBuilder(seed)
+    coefficients = set_encoder(g, modes, width)
+    phi = random_basis(mesh, modes, seed) if basis is None else basis
+    if folded:
+        flat = g.constant(phi.reshape(-1, modes).T.copy(), "basis")  # [M, 3N]
+        field = g.op("MatMul", [coefficients, flat])
+        shape = g.constant(np.array([-1, mesh.node_count, 3], np.int64))
+        g.nodes.append(helper.make_node("Reshape", [field, shape], ["displacement"]))
+        output = helper.make_tensor_value_info("displacement", TensorProto.FLOAT, ["batch", mesh.node_count, 3])
+    else:
+        g.nodes.append(helper.make_node("Identity", [coefficients], ["coefficients"]))
+        output = helper.make_tensor_value_info("coefficients", TensorProto.FLOAT, ["batch", modes])
+    graph = helper.make_graph(
+        g.nodes,
+        directory.name,
+        [helper.make_tensor_value_info("interaction", TensorProto.FLOAT, ["batch", "points", width])],
+        [output],
+        g.initializers,
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)], producer_name="nak-test-models")
+    model.ir_version = 8
+    onnx.checker.check_model(model)
+    directory.mkdir(parents=True, exist_ok=True)
+    onnx.save(model, directory / "model.onnx")
+    if not folded:
+        save_file(
+            {"basis": phi.astype(basis_dtype)},
+            str(directory / "basis.safetensors"),
+            metadata={"mesh_hash": basis_hash or mesh.content_hash},
+        )
+    write_manifest(directory, ["interaction"], "residual", mesh, seed, description)
+
+
 def feature_columns(channels: list[str]) -> list[str]:
     return [f"{c}{i}" for c in channels for i in range(len(SCALE[c]))]
 
@@ -168,6 +243,10 @@ def write_model(
             node.input[:] = [input_name if i == "features" else i for i in node.input]
     directory.mkdir(parents=True, exist_ok=True)
     onnx.save(model, directory / "model.onnx")
+    write_manifest(directory, channels, mode, mesh, seed, description)
+
+
+def write_manifest(directory: Path, channels: list[str], mode: str, mesh: Mesh, seed: int, description: str) -> None:
     listed = ", ".join(f'"{c}"' for c in channels)
     (directory / "manifest.toml").write_text(
         f"""# Test model made by tests/models/make_models.py: fixed random weights, not trained.
@@ -251,6 +330,22 @@ def main() -> None:
         "declares 4 output channels",
         output_dims=("batch", "nodes", 4),
     )
+    reduced: list[tuple[str, dict[str, Any]]] = [
+        ("reduced-residual", {}),
+        ("reduced-residual-f16", {"basis_dtype": np.float16}),
+        ("reduced-folded", {"folded": True}),
+    ]
+    for name, extra in reduced:
+        # One encoder and one basis (seed 21) in three forms.
+        write_reduced(HERE / coarse.directory / name, coarse, 21, f"set encoder over K points, {name}", **extra)
+    bad_reduced: list[tuple[str, dict[str, Any]]] = [
+        ("interaction-wrong-width", {"width": 5}),
+        ("basis-wrong-size", {"basis": random_basis(coarse, REDUCED_MODES, 1)[:-1]}),
+        ("basis-other-mesh", {"basis_hash": meshes[0].content_hash}),
+        ("basis-modes-mismatch", {"basis": random_basis(coarse, REDUCED_MODES - 4, 1)}),
+    ]
+    for seed, (name, extra) in enumerate(bad_reduced, start=31):
+        write_reduced(faulty / name / name, coarse, seed, name, **extra)
     print(f"wrote models for {', '.join(m.directory for m in meshes)} and faulty cases under {HERE}")
 
 

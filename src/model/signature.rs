@@ -1,0 +1,161 @@
+//! What a graph takes and gives under the model contract (DESIGN.md §7), read from its declared
+//! inputs and outputs so that a wrong graph is refused at load with a message naming the tensor.
+
+use ort::session::Session;
+use ort::value::{Outlet, TensorElementType, ValueType};
+
+use super::ModelLoadError;
+
+pub const FEATURES: &str = "features";
+pub const INTERACTION: &str = "interaction";
+pub const DISPLACEMENT: &str = "displacement";
+pub const COEFFICIENTS: &str = "coefficients";
+/// Per interaction point: rest position (3) and prescribed displacement (3).
+pub const INTERACTION_WIDTH: usize = 6;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Input {
+    /// `features` f32 [B, N, C]: every node's channels.
+    Features,
+    /// `interaction` f32 [B, K, 6]: only the K interaction points.
+    Interaction,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Output {
+    /// `displacement` f32 [B, N, 3].
+    Displacement,
+    /// `coefficients` f32 [B, M] of a basis beside the graph; M if the graph fixes it.
+    Coefficients { modes: Option<usize> },
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Signature {
+    pub input: Input,
+    pub output: Output,
+}
+
+/// Reads `session`'s signature: one input (`features` [B, N, channels] or `interaction` [B, K, 6]) and
+/// one output (`displacement` [B, N, 3], or `coefficients` [B, M] after `interaction`), f32, with B
+/// either 1 or symbolic.
+pub fn read(session: &Session, channels: usize, n: usize, origin: &str) -> Result<Signature, ModelLoadError> {
+    let [input] = session.inputs() else {
+        return Err(ModelLoadError::new(
+            origin,
+            format!(
+                "expected one input, {FEATURES:?} or {INTERACTION:?}; found: {}",
+                describe(session.inputs())
+            ),
+        ));
+    };
+    let input = match input.name() {
+        FEATURES => {
+            check_shape(input, "input", &[Some(n), Some(channels)], "[batch, N, C]", origin)?;
+            Input::Features
+        }
+        INTERACTION => {
+            let shape = check_shape(
+                input,
+                "input",
+                &[None, Some(INTERACTION_WIDTH)],
+                "[batch, K, 6]",
+                origin,
+            )?;
+            if shape[1] >= 0 {
+                return Err(ModelLoadError::new(
+                    origin,
+                    format!(
+                        "{INTERACTION:?} fixes K = {}; the contract needs K dynamic (1 to the server's limit)",
+                        shape[1]
+                    ),
+                ));
+            }
+            Input::Interaction
+        }
+        other => {
+            return Err(ModelLoadError::new(
+                origin,
+                format!("the input is named {other:?}; the model contract names it {FEATURES:?} or {INTERACTION:?}"),
+            ));
+        }
+    };
+    let [output] = session.outputs() else {
+        return Err(ModelLoadError::new(
+            origin,
+            format!(
+                "expected one output, {DISPLACEMENT:?} or {COEFFICIENTS:?}; found: {}",
+                describe(session.outputs())
+            ),
+        ));
+    };
+    let output = match (output.name(), input) {
+        (DISPLACEMENT, _) => {
+            check_shape(output, "output", &[Some(n), Some(3)], "[batch, N, 3]", origin)?;
+            Output::Displacement
+        }
+        (COEFFICIENTS, Input::Interaction) => {
+            let shape = check_shape(output, "output", &[None], "[batch, M]", origin)?;
+            Output::Coefficients {
+                modes: usize::try_from(shape[1]).ok(),
+            }
+        }
+        (COEFFICIENTS, Input::Features) => {
+            return Err(ModelLoadError::new(
+                origin,
+                format!("output {COEFFICIENTS:?} needs input {INTERACTION:?}; this graph reads {FEATURES:?}"),
+            ));
+        }
+        (other, _) => {
+            return Err(ModelLoadError::new(
+                origin,
+                format!(
+                    "the output is named {other:?}; the model contract names it {DISPLACEMENT:?} or {COEFFICIENTS:?}"
+                ),
+            ));
+        }
+    };
+    Ok(Signature { input, output })
+}
+
+/// Checks that `outlet` (an input or output, as `role` says) is f32 [batch, dims...] where each
+/// `Some` dimension is fixed or symbolic and each `None` one is free; returns the declared shape.
+fn check_shape(
+    outlet: &Outlet,
+    role: &str,
+    dims: &[Option<usize>],
+    expected: &str,
+    origin: &str,
+) -> Result<Vec<i64>, ModelLoadError> {
+    let name = outlet.name();
+    let ValueType::Tensor { ty, shape, .. } = outlet.dtype() else {
+        return Err(ModelLoadError::new(origin, format!("{role} {name:?} is not a tensor")));
+    };
+    let fits = |dim: i64, want: Option<usize>| dim < 0 || want.is_none_or(|w| dim == w as i64);
+    let ok = *ty == TensorElementType::Float32
+        && shape.len() == dims.len() + 1
+        && fits(shape[0], Some(1))
+        && shape[1..].iter().zip(dims).all(|(&d, &w)| fits(d, w));
+    if !ok {
+        let wanted = dims
+            .iter()
+            .map(|d| d.map_or("any".to_owned(), |v| v.to_string()))
+            .collect::<Vec<_>>()
+            .join(", ");
+        return Err(ModelLoadError::new(
+            origin,
+            format!(
+                "{role} {name:?} is {ty:?} {:?}; expected Float32 {expected} = [batch, {wanted}] (fixed or symbolic)",
+                shape.to_vec()
+            ),
+        ));
+    }
+    Ok(shape.to_vec())
+}
+
+fn describe(outlets: &[Outlet]) -> String {
+    outlets
+        .iter()
+        .map(|o| format!("{} {:?}", o.name(), o.dtype().tensor_shape().map(|s| s.to_vec())))
+        .collect::<Vec<_>>()
+        .join(", ")
+}
