@@ -18,6 +18,7 @@ import numpy as np
 import onnxruntime
 import pytest
 import torch
+from safetensors.numpy import load_file
 from conftest import ROOT, start_server
 from nak_training.config import load_config, parse_config
 from nak_training.dataset import open_dataset
@@ -26,6 +27,7 @@ from nak_training.evaluate import evaluate, nak_eval
 from nak_training.export import export
 from nak_training.kelvinlet import Prior, pad_points
 from nak_training.models import Grasped, build
+from nak_training.reduced_train import ReducedTrainer
 from nak_training.train import Trainer
 
 COARSE = ROOT / "models" / "phantom-liver" / "liver-coarse.msh"
@@ -231,3 +233,76 @@ def test_training_beats_the_untrained_network_through_nak_eval(
     written = tomllib.loads((models / "tiny-trained" / "manifest.toml").read_text())["metrics"]
     assert written["dcm_code_combined"] == trained["dcm_code_combined"]
     assert written["network_ms_p50"] > 0 and written["timed_requests"] > 0
+
+
+@pytest.fixture(scope="module")
+def reduced(coarse_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Reduced-basis networks from the coarse dataset: a trained POD +Res in three shipping forms (f32
+    and f16 basis files, folded graph), its untrained twin, and a DeepONet +Reg."""
+    dataset = open_dataset(coarse_data)
+    runs = tmp_path_factory.mktemp("reduced-runs")
+    models = tmp_path_factory.mktemp("reduced-models")
+    pod = dict(architecture="pod", modes=8, width=32, steps=200, batch=8, lr=3e-3, val_every=100)
+    variants: list[dict[str, Any]] = [
+        dict(name="pod-trained", basis_precision="f32", **pod),
+        dict(name="pod-f16", basis_precision="f16", **pod),
+        dict(name="pod-graph", form="graph", **pod),
+        dict(name="pod-untrained", **{**pod, "steps": 1, "lr": 1e-12}),
+        dict(name="deeponet-reg", architecture="deeponet", method="reg", modes=8, width=32, steps=30, batch=4),
+    ]
+    for values in variants:
+        config = parse_config(tiny_config(**values), "tiny")
+        run = runs / ("pod-trained" if values["name"] in ("pod-f16", "pod-graph") else values["name"])
+        if not (run / "summary.json").is_file():
+            run.mkdir(exist_ok=True)
+            (ReducedTrainer(config, dataset, run, log=quiet)).run()
+        export(config, dataset, run, models, log=quiet)
+    return models
+
+
+def test_reduced_networks_are_served_as_their_graph_and_basis_compute_them(
+    nak_binary: Path, coarse_data: Path, reduced: Path
+) -> None:
+    dataset = open_dataset(coarse_data)
+    manifest = tomllib.loads((reduced / "pod-trained" / "manifest.toml").read_text())
+    assert manifest["model"]["inputs"] == ["interaction"] and manifest["model"]["mode"] == "residual"
+    sample = dataset.load("test").samples[0]
+    pb, rpc = client.load_stubs()
+    args = ["--mesh", str(COARSE), "--models", str(reduced)]
+    with start_server(nak_binary, args) as address, grpc.insecure_channel(address) as channel:
+        stub = rpc.DeformationStub(channel)
+        grasps = [
+            pb.Grasp(nodes=[node], displacement=pb.Vec3(x=u[0], y=u[1], z=u[2]))
+            for node, u in zip(sample.nodes.tolist(), sample.displacements.tolist(), strict=True)
+        ]
+        served = {
+            name: np.frombuffer(stub.Predict(pb.PredictRequest(model=name, grasps=grasps)).displacements, "<f4")
+            for name in ("pod-trained", "pod-f16", "pod-graph", "deeponet-reg")
+        }
+
+    positions = dataset.mesh.positions
+    interaction = np.concatenate([positions[sample.nodes].numpy(), sample.displacements], axis=1)[None].astype("f4")
+    session = onnxruntime.InferenceSession(str(reduced / "pod-trained" / "model.onnx"))
+    (g,) = session.run(["coefficients"], {"interaction": interaction})
+    basis = load_file(str(reduced / "pod-trained" / "basis.safetensors"))["basis"]
+    _, points, u, mask = pad_points(
+        positions, [torch.from_numpy(sample.nodes)], [torch.from_numpy(sample.displacements)]
+    )
+    prior = Prior(dataset.mesh.prior[0], 0.02, dataset.mesh.prior[2])
+    expected = (basis @ g[0]).reshape(-1) + prior.evaluate(positions, points, u, mask)[0].numpy().reshape(-1)
+
+    def relative(a: np.ndarray, b: np.ndarray) -> float:
+        return float(np.linalg.norm(a - b) / np.linalg.norm(b))
+
+    assert relative(served["pod-trained"], expected) < 1e-5
+    assert relative(served["pod-graph"], expected) < 1e-5
+    assert 0 < relative(served["pod-f16"], expected) < 1e-3  # f16 basis: 2⁻¹¹ relative per value
+    assert np.isfinite(served["deeponet-reg"]).all()
+
+
+def test_reduced_training_beats_the_untrained_network_through_nak_eval(
+    nak_binary: Path, coarse_data: Path, reduced: Path
+) -> None:
+    trained = evaluate(reduced / "pod-trained", coarse_data, nak_binary, COARSE)
+    untrained = nak_eval(nak_binary, coarse_data, "pod-untrained", COARSE, reduced)["subsets"]["combined"]
+    assert trained["dcm_combined"] > untrained["dcm"] + 5.0, (trained, untrained)

@@ -64,11 +64,13 @@ def main(argv: list[str] | None = None) -> int:
 def run(command: str, config: TrainConfig, args: argparse.Namespace) -> None:
     dataset = open_dataset(args.data)
     if command in ("train", "all"):
+        from .reduced_train import ReducedTrainer
         from .train import Trainer
 
         run_dir = args.runs / config.name
         run_dir.mkdir(parents=True, exist_ok=True)
-        Trainer(config, dataset, run_dir, log=lambda m: print(m, flush=True)).run()
+        trainer = ReducedTrainer if config.reduced else Trainer
+        trainer(config, dataset, run_dir, log=lambda m: print(m, flush=True)).run()
     if command in ("export", "all"):
         from .export import export
 

@@ -10,8 +10,12 @@ from typing import Any
 
 from .errors import TrainingInputError
 from .models import ARCHITECTURES, SIZES
+from .reduced import REDUCED_ARCHITECTURES
 
 METHODS = {"base": "direct", "res": "residual", "reg": "direct"}
+PRECISIONS = ("f16", "f32")
+# How a reduced network's basis is shipped: a basis file nak multiplies, or folded into the graph.
+FORMS = ("basis", "graph")
 SUBSETS = {"single": ("single",), "multi": ("multi",), "all": ("single", "multi")}
 
 
@@ -36,6 +40,11 @@ class TrainConfig:
     q_batch: int = 8
     val_every: int = 250
     val_samples: int = 256
+    # Reduced-basis networks (pod, deeponet): modes M, encoder width, basis storage, how it ships.
+    modes: int = 64
+    width: int = 256
+    basis_precision: str = "f16"
+    form: str = "basis"
     seed: int = 0
     threads: int = 2
     description: str = ""
@@ -43,6 +52,11 @@ class TrainConfig:
     @property
     def mode(self) -> str:
         return METHODS[self.method]
+
+    @property
+    def reduced(self) -> bool:
+        """Whether this is a reduced-basis network, served in the interaction form."""
+        return self.architecture in REDUCED_ARCHITECTURES
 
     @property
     def subsets(self) -> tuple[str, ...]:
@@ -61,10 +75,12 @@ def parse_config(values: dict[str, Any], origin: str) -> TrainConfig:
         if key not in values:
             raise TrainingInputError(origin, f"missing key {key!r}")
     choices: dict[str, tuple[str, ...]] = {
-        "architecture": tuple(ARCHITECTURES),
+        "architecture": (*ARCHITECTURES, *REDUCED_ARCHITECTURES),
         "method": tuple(METHODS),
         "size": SIZES,
         "subset": tuple(SUBSETS),
+        "basis_precision": PRECISIONS,
+        "form": FORMS,
     }
     for key, allowed in choices.items():
         if key in values and values[key] not in allowed:
@@ -76,7 +92,7 @@ def parse_config(values: dict[str, Any], origin: str) -> TrainConfig:
         config = TrainConfig(**values)
     except TypeError as e:
         raise TrainingInputError(origin, str(e)) from e
-    for key in ("steps", "batch", "query_nodes", "val_every", "val_samples", "threads"):
+    for key in ("steps", "batch", "query_nodes", "val_every", "val_samples", "threads", "modes", "width"):
         if int(getattr(config, key)) < 1:
             raise TrainingInputError(origin, f"{key} = {getattr(config, key)!r}: must be at least 1")
     return config

@@ -19,13 +19,18 @@ import onnxruntime
 import tomli_w
 import torch
 
+from safetensors.numpy import save_file
+
 from .config import TrainConfig
-from .dataset import Dataset
+from .dataset import Dataset, Sample
 from .errors import TrainingInputError
+from .reduced import InteractionGraph
+from .reduced_train import load_reduced
 from .train import load_trained, served_features
 
 OPSET = 17
 RELATIVE_TOLERANCE = 1e-5
+BASIS_FILE = "basis.safetensors"
 CHECK_SAMPLES = 4
 MANIFEST_HEADER = (
     "# Written by `python -m nak_training export` (training/); [metrics] by `... evaluate`, through nak eval.\n"
@@ -33,7 +38,6 @@ MANIFEST_HEADER = (
 
 
 def export(config: TrainConfig, dataset: Dataset, run_dir: Path, out_root: Path, log: Any = print) -> Path:
-    model = load_trained(run_dir, config)
     state = json.loads((run_dir / "state.json").read_text())
     summary_path = run_dir / "summary.json"
     if not summary_path.is_file():
@@ -41,25 +45,15 @@ def export(config: TrainConfig, dataset: Dataset, run_dir: Path, out_root: Path,
     summary = json.loads(summary_path.read_text())
     directory = out_root / config.name
     directory.mkdir(parents=True, exist_ok=True)
-    for stale in ("manifest.toml", "model.onnx"):
+    for stale in ("manifest.toml", "model.onnx", BASIS_FILE):
         (directory / stale).unlink(missing_ok=True)
     check = dataset.load("val", config.subsets).samples[:CHECK_SAMPLES]
-    features = served_features(dataset.mesh, [s.nodes for s in check], [s.displacements for s in check])
     with tempfile.TemporaryDirectory() as tmp:
         graph = Path(tmp) / "model.onnx"
-        torch.onnx.export(
-            model,
-            (features[:1],),
-            str(graph),
-            input_names=["features"],
-            output_names=["displacement"],
-            opset_version=OPSET,
-            dynamo=False,
-        )
-        difference = compare_with_onnxruntime(model, graph, features)
-        log(f"onnxruntime vs PyTorch on {len(check)} val samples: relative difference {difference:.2e}")
-        if difference > RELATIVE_TOLERANCE:
-            raise TrainingInputError(graph, f"the exported graph differs from PyTorch by {difference:.2e} (relative)")
+        if config.reduced:
+            inputs = write_interaction_graph(config, dataset, run_dir, check, graph, directory, log)
+        else:
+            inputs = write_features_graph(config, dataset, run_dir, check, graph, log)
         graph.replace(directory / "model.onnx")
     (directory / "config.toml").write_text(tomli_w.dumps(config.to_dict()))
     manifest = {
@@ -68,7 +62,7 @@ def export(config: TrainConfig, dataset: Dataset, run_dir: Path, out_root: Path,
             "mode": config.mode,
             "method": config.method,
             "regime": dataset.regime,
-            "inputs": ["position", "displacement", "active"],
+            "inputs": inputs,
             "description": config.description or describe(config),
         },
         "mesh": {
@@ -85,25 +79,100 @@ def export(config: TrainConfig, dataset: Dataset, run_dir: Path, out_root: Path,
         "provenance": provenance(config, dataset, summary, state),
     }
     (directory / "manifest.toml").write_text(MANIFEST_HEADER + tomli_w.dumps(manifest))
-    size = (directory / "model.onnx").stat().st_size
+    size = sum(f.stat().st_size for f in directory.iterdir() if f.name in ("model.onnx", BASIS_FILE))
     log(f"exported {directory} ({size / 1e6:.2f} MB)")
     return directory
+
+
+def write_features_graph(
+    config: TrainConfig, dataset: Dataset, run_dir: Path, check: list[Sample], graph: Path, log: Any
+) -> list[str]:
+    """A full-field network: `features` [B, N, 7] → `displacement` [B, N, 3]."""
+    model = load_trained(run_dir, config)
+    features = served_features(dataset.mesh, [s.nodes for s in check], [s.displacements for s in check])
+    torch.onnx.export(
+        model,
+        (features[:1],),
+        str(graph),
+        input_names=["features"],
+        output_names=["displacement"],
+        opset_version=OPSET,
+        dynamo=False,
+    )
+    checked(model, graph, [features[i : i + 1] for i in range(len(check))], "features", "displacement", log)
+    return ["position", "displacement", "active"]
+
+
+def write_interaction_graph(
+    config: TrainConfig, dataset: Dataset, run_dir: Path, check: list[Sample], graph: Path, directory: Path, log: Any
+) -> list[str]:
+    """A reduced network: `interaction` [B, K, 6] → `coefficients` [B, M] with `basis.safetensors`
+    beside the graph, or → `displacement` [B, N, 3] with the basis folded into it (form = "graph";
+    a DeepONet's trunk then stays a subgraph over the node positions that ONNX Runtime folds at load)."""
+    net, basis = load_reduced(run_dir, config)
+    positions = dataset.mesh.positions
+    folded = config.form == "graph"
+    if basis is None and not folded:
+        assert net.trunk is not None
+        with torch.no_grad():
+            basis = net.trunk(positions.float()).double()
+    module = InteractionGraph(net, basis if folded else None, positions, folded)
+    inputs = [
+        torch.cat([positions[s.nodes].float(), torch.from_numpy(s.displacements).float()], dim=-1)[None] for s in check
+    ]
+    output = "displacement" if folded else "coefficients"
+    torch.onnx.export(
+        module,
+        (inputs[0],),
+        str(graph),
+        input_names=["interaction"],
+        output_names=[output],
+        dynamic_axes={"interaction": {0: "batch", 1: "points"}, output: {0: "batch"}},
+        opset_version=OPSET,
+        do_constant_folding=net.trunk is None,
+        dynamo=False,
+    )
+    checked(module, graph, inputs, "interaction", output, log)
+    if basis is not None and not folded:
+        values = basis.float().numpy().astype(np.float16 if config.basis_precision == "f16" else np.float32)
+        save_file({"basis": values}, str(directory / BASIS_FILE), metadata={"mesh_hash": dataset.mesh.content_hash})
+    return ["interaction"]
+
+
+def checked(model: torch.nn.Module, graph: Path, inputs: list[torch.Tensor], name: str, output: str, log: Any) -> None:
+    """Refuses a graph that differs from PyTorch on `inputs` by more than RELATIVE_TOLERANCE."""
+    difference = compare_with_onnxruntime(model, graph, inputs, name, output)
+    log(f"onnxruntime vs PyTorch on {len(inputs)} val samples: relative difference {difference:.2e}")
+    if difference > RELATIVE_TOLERANCE:
+        raise TrainingInputError(graph, f"the exported graph differs from PyTorch by {difference:.2e} (relative)")
 
 
 def describe(config: TrainConfig) -> str:
     method = {"base": "Base", "res": "+Res (Kelvinlet residual)", "reg": "+Reg (Kelvinlet regularization)"}
     trained_on = {"single": "single-grasper", "multi": "two-grasper", "all": "all"}[config.subset]
-    return f"{config.architecture} ({config.size} size), {method[config.method]}, trained on {trained_on} samples"
+    if config.reduced:
+        basis = {"pod": "POD basis", "deeponet": "DeepONet trunk"}[config.architecture]
+        shipped = f"{config.basis_precision} basis file" if config.form == "basis" else "folded into the graph"
+        network = f"{basis}, M = {config.modes} ({shipped}), set encoder width {config.width}"
+    else:
+        network = f"{config.architecture} ({config.size} size)"
+    return f"{network}, {method[config.method]}, trained on {trained_on} samples"
 
 
-def compare_with_onnxruntime(model: torch.nn.Module, graph: Path, features: torch.Tensor) -> float:
-    """Largest relative difference (over samples, by the field's norm) between PyTorch and onnxruntime."""
+def compare_with_onnxruntime(
+    model: torch.nn.Module,
+    graph: Path,
+    inputs: list[torch.Tensor],
+    name: str = "features",
+    output: str = "displacement",
+) -> float:
+    """Largest relative difference (over inputs, by the output's norm) between PyTorch and onnxruntime."""
     session = onnxruntime.InferenceSession(str(graph), providers=["CPUExecutionProvider"])
     worst = 0.0
     with torch.no_grad():
-        for i in range(features.shape[0]):
-            expected = model(features[i : i + 1]).numpy()
-            (got,) = session.run(["displacement"], {"features": features[i : i + 1].numpy()})
+        for x in inputs:
+            expected = model(x).numpy()
+            (got,) = session.run([output], {name: x.numpy()})
             scale = max(float(np.linalg.norm(expected)), 1e-30)
             worst = max(worst, float(np.linalg.norm(got - expected)) / scale)
     return worst

@@ -89,7 +89,13 @@ class Batch:
     grasped: Grasped
 
 
-class Trainer:
+class Run:
+    """What every training run shares: seeds, the train/val splits, the prior's ε (fitted once and kept
+    in state.json), AdamW with warm-up and cosine decay, progress with ETA, model selection on val,
+    checkpoints and resume. Subclasses build `self.model` and define a step and the val score."""
+
+    model: torch.nn.Module
+
     def __init__(self, config: TrainConfig, dataset: Dataset, run_dir: Path, log: Any = print) -> None:
         self.config, self.dataset, self.run_dir, self.log = config, dataset, run_dir, log
         torch.set_num_threads(config.threads)
@@ -114,22 +120,24 @@ class Trainer:
         self.epsilon = float(state["epsilon"])
         self.prior = prior_of(self.mesh, self.epsilon)
         self.log(f"prior: ν = {self.prior.poisson_ratio}, ε = {self.epsilon * 100:g} cm, λ = {self.prior.lam:g}")
-        residual = config.method == "res"
-        self.train_prior = prior_fields(self.prior, self.mesh, self.train) if residual else None
-        self.val_prior = prior_fields(self.prior, self.mesh, self.val) if residual else None
-        self.model = build(config.architecture, config.size)
-        self._set_statistics()
-        positions = self.mesh.positions.float()
-        rest = torch.cat([positions, torch.zeros(self.mesh.node_count, 4)], dim=1)
-        self.rest = self.model.normalizer.inputs(rest)
         self.volumes = self.mesh.nodal_volumes.float()
         self.q = QSampler(self.mesh, self.generator) if config.method == "reg" else None
-        self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+
+    def _start(self, model: torch.nn.Module) -> None:
+        """Takes `model` for training and resumes from the run's checkpoint if there is one."""
+        self.model = model
+        self.optimizer = torch.optim.AdamW(model.parameters(), lr=self.config.lr, weight_decay=self.config.weight_decay)
         self.step = 0
         self.best = -math.inf
         self.elapsed = 0.0
         self.history: list[dict[str, float]] = []
         self._resume()
+
+    def _step(self) -> float:
+        raise NotImplementedError
+
+    def validate(self) -> float:
+        raise NotImplementedError
 
     # -- set-up ---------------------------------------------------------------------------------
 
@@ -142,20 +150,6 @@ class Trainer:
             return state
         except json.JSONDecodeError as e:
             raise TrainingInputError(path, f"unreadable ({e}); delete the run directory to start over") from e
-
-    def _set_statistics(self) -> None:
-        """Input and output normalization from the train split (they become part of the graph)."""
-        positions = self.mesh.positions
-        u = torch.cat([torch.from_numpy(s.displacements) for s in self.train.samples])
-        target = self.train.fields if self.train_prior is None else self.train.fields - self.train_prior
-        flat = target.reshape(-1, 3).double()
-        self.model.normalizer.set(
-            x_mean=positions.mean(0),
-            x_std=positions.std(0),
-            u_scale=(u**2).mean(0).sqrt(),
-            out_mean=flat.mean(0),
-            out_std=flat.std(0),
-        )
 
     def _resume(self) -> None:
         path = self.run_dir / "checkpoint.pt"
@@ -178,33 +172,7 @@ class Trainer:
         self.history = checkpoint["history"]
         self.log(f"resumed at step {self.step} (best val DCM {self.best:.2f} %)")
 
-    # -- one step -------------------------------------------------------------------------------
-
-    def _batch(self, nodes: list[torch.Tensor], displacements: list[torch.Tensor]) -> Batch:
-        ids, _, disp, mask = pad_points(self.mesh.positions, nodes, displacements)
-        # Padding repeats a sample's first grasped node: give it that node's displacement too, so the
-        # repeated row is identical wherever it is written.
-        disp = torch.where(mask[..., None], disp, disp[:, :1])
-        b = len(nodes)
-        rows = torch.cat([disp.float() / self.model.normalizer.u_scale, torch.ones(b, ids.shape[1], 1)], dim=-1)
-        dense = self.rest.expand(b, -1, -1).clone()
-        dense[torch.arange(b).unsqueeze(-1).expand_as(ids), ids, 3:7] = rows
-        grasped = dense.gather(1, ids.unsqueeze(-1).expand(-1, -1, 7))
-        return Batch(dense, grasped, Grasped(ids, mask))
-
-    def _predict(self, batch: Batch, query: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        if self.model.row_wise:
-            out = self.model.forward_split(self.rest, batch.rows, batch.grasped, batch.dense[:, query])
-            return out, torch.zeros(())
-        out, penalty = self.model.forward_normalized(batch.dense)
-        return out[:, query], penalty
-
-    def _misfit(self, prediction: torch.Tensor, target: torch.Tensor, query: torch.Tensor) -> torch.Tensor:
-        """Volume-weighted mean squared misfit in normalized output units."""
-        n = self.model.normalizer
-        weights = self.volumes[query] / self.volumes[query].mean()
-        squared = ((prediction - (target - n.out_mean) / n.out_std) ** 2).sum(-1)
-        return (squared * weights).mean()
+    # -- the schedule ---------------------------------------------------------------------------
 
     def _learning_rate(self) -> float:
         warmup = min(100, self.config.steps // 10)
@@ -213,50 +181,7 @@ class Trainer:
         progress = (self.step - warmup) / max(1, self.config.steps - warmup)
         return self.config.lr * (0.02 + 0.98 * 0.5 * (1.0 + math.cos(math.pi * progress)))
 
-    def _step(self) -> float:
-        c = self.config
-        g = self.generator
-        picks = torch.randint(len(self.train), (c.batch,), generator=g)
-        samples = [self.train.samples[int(i)] for i in picks]
-        nodes = [torch.from_numpy(s.nodes) for s in samples]
-        displacements = [torch.from_numpy(s.displacements) for s in samples]
-        query = torch.randperm(self.mesh.node_count, generator=g)[: c.query_nodes]
-        rows = (picks[:, None], query[None, :])
-        target = self.train.fields[rows]
-        if self.train_prior is not None:
-            target = target - self.train_prior[rows]
-        if self.q is not None:
-            # q samples ride in the same forward pass: the nodes at rest are encoded once for both.
-            q_nodes, q_displacements = self.q.draw(c.q_batch)
-            _, points, disp, mask = pad_points(self.mesh.positions, q_nodes, q_displacements)
-            kelvinlet = self.prior.evaluate(self.mesh.positions[query], points, disp, mask).float()
-            nodes, displacements = nodes + q_nodes, displacements + q_displacements
-        prediction, penalty = self._predict(self._batch(nodes, displacements), query)
-        loss = self._misfit(prediction[: c.batch], target, query) + STN_PENALTY * penalty
-        if self.q is not None:
-            loss = loss + c.lambda_reg * self._misfit(prediction[c.batch :], kelvinlet, query)
-        for group in self.optimizer.param_groups:
-            group["lr"] = self._learning_rate()
-        self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        self.optimizer.step()
-        return float(loss.detach())
-
     # -- validation and the loop ----------------------------------------------------------------
-
-    @torch.no_grad()
-    def validate(self, batch: int = 8) -> float:
-        """Volume-weighted DCM of the served field (prior added for +Res) on the val samples."""
-        self.model.eval()
-        estimates = torch.empty_like(self.val.fields)
-        for start in range(0, len(self.val), batch):
-            chunk = self.val.samples[start : start + batch]
-            features = served_features(self.mesh, [s.nodes for s in chunk], [s.displacements for s in chunk])
-            estimates[start : start + len(chunk)] = self.model(features)
-        if self.val_prior is not None:
-            estimates += self.val_prior
-        self.model.train()
-        return dcm(self.val.fields, estimates, self.mesh.nodal_volumes)
 
     def run(self) -> dict[str, Any]:
         c = self.config
@@ -316,6 +241,107 @@ class Trainer:
         tmp = self.run_dir / "checkpoint.pt.partial"
         torch.save(checkpoint, tmp)
         tmp.replace(self.run_dir / "checkpoint.pt")
+
+
+class Trainer(Run):
+    """A full-field network (PointNet, DeepSet U-Net, ISAB): features of every node in, field out."""
+
+    model: SetNet
+
+    def __init__(self, config: TrainConfig, dataset: Dataset, run_dir: Path, log: Any = print) -> None:
+        super().__init__(config, dataset, run_dir, log)
+        residual = config.method == "res"
+        self.train_prior = prior_fields(self.prior, self.mesh, self.train) if residual else None
+        self.val_prior = prior_fields(self.prior, self.mesh, self.val) if residual else None
+        model = build(config.architecture, config.size)
+        self._set_statistics(model)
+        positions = self.mesh.positions.float()
+        rest = torch.cat([positions, torch.zeros(self.mesh.node_count, 4)], dim=1)
+        self.rest = model.normalizer.inputs(rest)
+        self._start(model)
+
+    def _set_statistics(self, model: SetNet) -> None:
+        """Input and output normalization from the train split (they become part of the graph)."""
+        positions = self.mesh.positions
+        u = torch.cat([torch.from_numpy(s.displacements) for s in self.train.samples])
+        target = self.train.fields if self.train_prior is None else self.train.fields - self.train_prior
+        flat = target.reshape(-1, 3).double()
+        model.normalizer.set(
+            x_mean=positions.mean(0),
+            x_std=positions.std(0),
+            u_scale=(u**2).mean(0).sqrt(),
+            out_mean=flat.mean(0),
+            out_std=flat.std(0),
+        )
+
+    def _batch(self, nodes: list[torch.Tensor], displacements: list[torch.Tensor]) -> Batch:
+        ids, _, disp, mask = pad_points(self.mesh.positions, nodes, displacements)
+        # Padding repeats a sample's first grasped node: give it that node's displacement too, so the
+        # repeated row is identical wherever it is written.
+        disp = torch.where(mask[..., None], disp, disp[:, :1])
+        b = len(nodes)
+        rows = torch.cat([disp.float() / self.model.normalizer.u_scale, torch.ones(b, ids.shape[1], 1)], dim=-1)
+        dense = self.rest.expand(b, -1, -1).clone()
+        dense[torch.arange(b).unsqueeze(-1).expand_as(ids), ids, 3:7] = rows
+        grasped = dense.gather(1, ids.unsqueeze(-1).expand(-1, -1, 7))
+        return Batch(dense, grasped, Grasped(ids, mask))
+
+    def _predict(self, batch: Batch, query: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        if self.model.row_wise:
+            out = self.model.forward_split(self.rest, batch.rows, batch.grasped, batch.dense[:, query])
+            return out, torch.zeros(())
+        out, penalty = self.model.forward_normalized(batch.dense)
+        return out[:, query], penalty
+
+    def _misfit(self, prediction: torch.Tensor, target: torch.Tensor, query: torch.Tensor) -> torch.Tensor:
+        """Volume-weighted mean squared misfit in normalized output units."""
+        n = self.model.normalizer
+        weights = self.volumes[query] / self.volumes[query].mean()
+        squared = ((prediction - (target - n.out_mean) / n.out_std) ** 2).sum(-1)
+        return (squared * weights).mean()
+
+    def _step(self) -> float:
+        c = self.config
+        g = self.generator
+        picks = torch.randint(len(self.train), (c.batch,), generator=g)
+        samples = [self.train.samples[int(i)] for i in picks]
+        nodes = [torch.from_numpy(s.nodes) for s in samples]
+        displacements = [torch.from_numpy(s.displacements) for s in samples]
+        query = torch.randperm(self.mesh.node_count, generator=g)[: c.query_nodes]
+        rows = (picks[:, None], query[None, :])
+        target = self.train.fields[rows]
+        if self.train_prior is not None:
+            target = target - self.train_prior[rows]
+        if self.q is not None:
+            # q samples ride in the same forward pass: the nodes at rest are encoded once for both.
+            q_nodes, q_displacements = self.q.draw(c.q_batch)
+            _, points, disp, mask = pad_points(self.mesh.positions, q_nodes, q_displacements)
+            kelvinlet = self.prior.evaluate(self.mesh.positions[query], points, disp, mask).float()
+            nodes, displacements = nodes + q_nodes, displacements + q_displacements
+        prediction, penalty = self._predict(self._batch(nodes, displacements), query)
+        loss = self._misfit(prediction[: c.batch], target, query) + STN_PENALTY * penalty
+        if self.q is not None:
+            loss = loss + c.lambda_reg * self._misfit(prediction[c.batch :], kelvinlet, query)
+        for group in self.optimizer.param_groups:
+            group["lr"] = self._learning_rate()
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        return float(loss.detach())
+
+    @torch.no_grad()
+    def validate(self, batch: int = 8) -> float:
+        """Volume-weighted DCM of the served field (prior added for +Res) on the val samples."""
+        self.model.eval()
+        estimates = torch.empty_like(self.val.fields)
+        for start in range(0, len(self.val), batch):
+            chunk = self.val.samples[start : start + batch]
+            features = served_features(self.mesh, [s.nodes for s in chunk], [s.displacements for s in chunk])
+            estimates[start : start + len(chunk)] = self.model(features)
+        if self.val_prior is not None:
+            estimates += self.val_prior
+        self.model.train()
+        return dcm(self.val.fields, estimates, self.mesh.nodal_volumes)
 
 
 def served_features(mesh: Mesh, nodes: list[Any], displacements: list[Any]) -> torch.Tensor:

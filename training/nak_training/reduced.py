@@ -1,0 +1,163 @@
+"""Reduced-basis networks (DESIGN.md §7, the `interaction` form): a set encoder over the K interaction
+points gives M coefficients g, and the field is Φ g for a basis Φ [N, 3, M] that depends on the mesh
+alone. Per request the work scales with K (and the M-term product), not with a network over N nodes.
+
+* POD: Φ is the proper orthogonal decomposition of the training targets in L2(Ω) (lumped volumes V,
+  DESIGN.md §6), so Φᵀ V Φ = I and ‖Φ g − r‖²_V = ‖g − Φᵀ V r‖² + ‖r − Φ Φᵀ V r‖²_V: the model is
+  trained in coefficient space and its DCM on the training targets is exact without touching a node.
+* DeepONet: Φ(x) is a trunk MLP over node positions, learned with the encoder (the branch); it is
+  evaluated over the mesh's nodes once, at export (a basis file) or by ONNX Runtime's constant folding
+  at load (a graph holding the positions).
+
+The encoder is linear in the prescribed displacements given the geometry, as linear elasticity is:
+per point a matrix B_k [M, 3] from the point's position and a summary of the whole set, g = mean_k
+B_k û_k, plus a nonlinear term of the summary (for what is not linear).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import nn
+
+REDUCED_ARCHITECTURES = ("pod", "deeponet")
+
+
+def mlp(widths: list[int]) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for i, (a, b) in enumerate(zip(widths[:-1], widths[1:], strict=True)):
+        layers.append(nn.Linear(a, b))
+        if i < len(widths) - 2:
+            layers.append(nn.GELU())
+    return nn.Sequential(*layers)
+
+
+class SetEncoder(nn.Module):
+    """interaction [B, K, 6] (rest position, prescribed displacement; metres) → g [B, M]."""
+
+    x_mean: torch.Tensor
+    x_std: torch.Tensor
+    u_scale: torch.Tensor
+    g_scale: torch.Tensor
+
+    def __init__(self, modes: int, width: int) -> None:
+        super().__init__()
+        self.modes = modes
+        self.embed = mlp([6, width, width, width])
+        self.matrices = mlp([3 + 2 * width, width, width, 3 * modes])
+        self.head = mlp([2 * width, width, modes])
+        for name, shape in [("x_mean", 3), ("x_std", 3), ("u_scale", 3), ("g_scale", modes)]:
+            self.register_buffer(name, torch.ones(shape) if name != "x_mean" else torch.zeros(shape))
+
+    def set_statistics(self, **stats: torch.Tensor) -> None:
+        for name, value in stats.items():
+            self.get_buffer(name).copy_(value.to(torch.float32))
+
+    def forward(self, interaction: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        """`mask` [B, K] marks real points in a padded training batch; a served request has none."""
+        x = (interaction[..., :3] - self.x_mean) / self.x_std
+        u = interaction[..., 3:] / self.u_scale
+        e = self.embed(torch.cat([x, u], dim=-1))
+        if mask is None:
+            mean, largest = e.mean(1), e.amax(1)
+            weights = None
+        else:
+            weights = mask.unsqueeze(-1).to(e.dtype)
+            mean = (e * weights).sum(1) / weights.sum(1)
+            largest = e.masked_fill(~mask.unsqueeze(-1), float("-inf")).amax(1)
+        summary = torch.cat([mean, largest], dim=-1)
+        context = summary.unsqueeze(1).expand(-1, x.shape[1], -1)
+        b = self.matrices(torch.cat([x, context], dim=-1)).unflatten(-1, (self.modes, 3))
+        linear = (b @ u.unsqueeze(-1)).squeeze(-1)  # [B, K, M]
+        linear = linear.mean(1) if weights is None else (linear * weights).sum(1) / weights.sum(1)
+        return (linear + self.head(summary)) * self.g_scale
+
+
+class Trunk(nn.Module):
+    """DeepONet's trunk: node positions [N, 3] → basis [N, 3, M]."""
+
+    x_mean: torch.Tensor
+    x_std: torch.Tensor
+
+    def __init__(self, modes: int, width: int) -> None:
+        super().__init__()
+        self.modes = modes
+        self.net = mlp([3, width, width, width, 3 * modes])
+        self.register_buffer("x_mean", torch.zeros(3))
+        self.register_buffer("x_std", torch.ones(3))
+        self.scale = nn.Parameter(torch.tensor(1.0))
+
+    def forward(self, positions: torch.Tensor) -> torch.Tensor:
+        x = (positions - self.x_mean) / self.x_std
+        return self.net(x).unflatten(-1, (3, self.modes)) * self.scale
+
+
+class ReducedNet(nn.Module):
+    """The encoder, and the trunk for a DeepONet (a POD's basis is data, not parameters)."""
+
+    def __init__(self, architecture: str, modes: int, width: int) -> None:
+        super().__init__()
+        self.encoder = SetEncoder(modes, width)
+        self.trunk = Trunk(modes, width) if architecture == "deeponet" else None
+
+
+class InteractionGraph(nn.Module):
+    """What is exported: interaction [1, K, 6] → coefficients [1, M], or → displacement [1, N, 3] with
+    the basis in the graph (`folded`: Φ itself, or the trunk over the node positions, which ONNX
+    Runtime folds into a constant when it loads the graph)."""
+
+    def __init__(self, net: ReducedNet, basis: torch.Tensor | None, positions: torch.Tensor, folded: bool) -> None:
+        super().__init__()
+        self.encoder = net.encoder
+        self.folded = folded
+        self.trunk = net.trunk
+        self.register_buffer("positions", positions.float())
+        self.register_buffer("basis", basis.float() if basis is not None else torch.zeros(0))
+
+    def forward(self, interaction: torch.Tensor) -> torch.Tensor:
+        g = self.encoder(interaction)
+        if not self.folded:
+            return g
+        phi = self.trunk(self.positions) if self.trunk is not None else self.basis
+        return torch.einsum("nkm,bm->bnk", phi, g)
+
+
+def weighted_basis(fields: torch.Tensor, volumes: torch.Tensor, modes: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """POD in L2(Ω) of fields [S, N, 3]: Φ [N, 3, M] (f64) with Φᵀ V Φ = I, and the singular values.
+
+    Through the S × S Gram matrix of the volume-weighted fields (S ≪ 3N here), in f64.
+    """
+    s, n, _ = fields.shape
+    sqrt_v = volumes.double().sqrt().repeat_interleave(3)
+    x = fields.reshape(s, -1).double() * sqrt_v
+    values, vectors = torch.linalg.eigh(x @ x.T)
+    order = values.argsort(descending=True)[:modes]
+    singular = values[order].clamp_min(0).sqrt()
+    psi = (x.T @ vectors[:, order]) / singular.clamp_min(1e-300)  # orthonormal columns [3N, M]
+    return (psi / sqrt_v.unsqueeze(1)).reshape(n, 3, -1), singular
+
+
+def project(fields: torch.Tensor, basis: torch.Tensor, volumes: torch.Tensor, chunk: int = 512) -> dict[str, Any]:
+    """Per sample: coefficients Φᵀ V r [S, M], the squared L2(Ω) norm of what Φ misses [S], and of r [S]."""
+    v3 = volumes.double().repeat_interleave(3)
+    phi = basis.reshape(-1, basis.shape[-1])
+    g, missed, norm = [], [], []
+    for start in range(0, fields.shape[0], chunk):
+        r = fields[start : start + chunk].reshape(-1, phi.shape[0]).double()
+        total = (r * r) @ v3
+        coefficients = (r * v3) @ phi
+        g.append(coefficients)
+        norm.append(total)
+        missed.append((total - (coefficients**2).sum(1)).clamp_min(0))
+    return {"g": torch.cat(g).float(), "missed": torch.cat(missed), "norm": torch.cat(norm)}
+
+
+def ceiling(projection: dict[str, Any], truth_norm: torch.Tensor, modes: list[int]) -> dict[int, float]:
+    """DCM (volume form) of the best M-term approximation of each target, for each M in `modes`."""
+    g = projection["g"].double()
+    out = {}
+    for m in modes:
+        missed = projection["norm"] - (g[:, :m] ** 2).sum(1)
+        out[m] = float(100.0 * (1.0 - (missed.clamp_min(0).sqrt() / truth_norm.sqrt()).mean()))
+    return out

@@ -1,0 +1,200 @@
+"""Training reduced-basis networks (POD, DeepONet; see reduced.py) as Base, +Res or +Reg.
+
+The loss is the DCM's own per-sample error, ‖u_true − û‖_{L2(Ω)} / ‖u_true‖_{L2(Ω)} (DESIGN.md §6),
+averaged over the batch. For a POD it is exact in coefficient space; a DeepONet's is estimated on
+`query_nodes` nodes drawn per step. +Reg adds λ_reg × the same relative misfit to the Kelvinlet field
+of fresh q samples, whose projection onto the basis (POD) costs one field over the mesh per sample.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from .config import TrainConfig
+from .dataset import Dataset, Split
+from .errors import TrainingInputError
+from .kelvinlet import pad_points
+from .reduced import ReducedNet, ceiling, project, weighted_basis
+from .train import Run, prior_fields
+
+CEILING_MODES = [8, 16, 32, 48, 64, 96, 128, 192, 256]
+
+
+def interaction_batch(mesh_positions: torch.Tensor, split: Split) -> tuple[torch.Tensor, torch.Tensor]:
+    """Every sample's interaction points as served, padded: [S, K, 6] f32 and the mask [S, K]."""
+    _, points, displacements, mask = pad_points(
+        mesh_positions,
+        [torch.from_numpy(s.nodes) for s in split.samples],
+        [torch.from_numpy(s.displacements) for s in split.samples],
+    )
+    return torch.cat([points.float(), displacements.float()], dim=-1), mask
+
+
+def squared_norms(fields: torch.Tensor, volumes: torch.Tensor) -> torch.Tensor:
+    """‖u‖²_{L2(Ω)} per sample of fields [S, N, 3]."""
+    return (fields.double() ** 2).sum(-1) @ volumes.double()
+
+
+class ReducedTrainer(Run):
+    model: ReducedNet
+
+    def __init__(self, config: TrainConfig, dataset: Dataset, run_dir: Path, log: Any = print) -> None:
+        super().__init__(config, dataset, run_dir, log)
+        self.residual = config.method == "res"
+        self.train_targets = self._targets(self.train, "train")
+        self.val_targets = self._targets(self.val, "val")
+        self.train_norm = squared_norms(self.train.fields, self.mesh.nodal_volumes).float()
+        self.val_norm = squared_norms(self.val.fields, self.mesh.nodal_volumes).float()
+        self.train_points, self.train_mask = interaction_batch(self.mesh.positions, self.train)
+        self.val_points, self.val_mask = interaction_batch(self.mesh.positions, self.val)
+        net = ReducedNet(config.architecture, config.modes, config.width)
+        positions = self.mesh.positions
+        u = self.train_points[..., 3:][self.train_mask]
+        net.encoder.set_statistics(x_mean=positions.mean(0), x_std=positions.std(0), u_scale=(u**2).mean(0).sqrt())
+        self.basis: torch.Tensor | None = None
+        if net.trunk is None:
+            self.basis = self._pod_basis()
+            self.train_projection = project(self.train_targets, self.basis, self.mesh.nodal_volumes)
+            self.val_projection = project(self.val_targets, self.basis, self.mesh.nodal_volumes)
+            net.encoder.set_statistics(g_scale=self.train_projection["g"].std(0).clamp_min(1e-12))
+        else:
+            net.trunk.x_mean.copy_(positions.mean(0).float())
+            net.trunk.x_std.copy_(positions.std(0).float())
+            rms = self.train_targets.pow(2).mean().sqrt()
+            net.encoder.set_statistics(g_scale=torch.full((config.modes,), float(rms)))
+        self.positions = positions.float()
+        self._start(net)
+
+    # -- data -----------------------------------------------------------------------------------
+
+    def _targets(self, split: Split, name: str) -> torch.Tensor:
+        """What the network's Φ g must match: u_true (Base, +Reg) or u_true − prior (+Res)."""
+        if not self.residual:
+            return split.fields
+        self.log(f"prior over the {name} split ({len(split)} samples)…")
+        return split.fields - prior_fields(self.prior, self.mesh, split, batch=64)
+
+    def _pod_basis(self) -> torch.Tensor:
+        """The POD of the train targets, computed once per run (kept in basis.pt for resume and export)."""
+        path = self.run_dir / "basis.pt"
+        if path.is_file():
+            try:
+                saved: dict[str, Any] = torch.load(path, weights_only=True)
+                basis: torch.Tensor = saved["basis"]
+                if basis.shape == (self.mesh.node_count, 3, self.config.modes):
+                    return basis
+            except (RuntimeError, KeyError) as e:
+                raise TrainingInputError(path, f"unreadable basis ({e}); delete it to recompute") from e
+        if self.config.modes > len(self.train):
+            raise TrainingInputError(
+                self.dataset.root, f"modes = {self.config.modes} exceeds the {len(self.train)} train samples"
+            )
+        self.log(f"POD of {len(self.train)} train targets in L2(Ω)…")
+        basis, singular = weighted_basis(self.train_targets, self.mesh.nodal_volumes, max(CEILING_MODES))
+        test = self.dataset.load("test", self.config.subsets)
+        test_targets = self._targets(test, "test")
+        projection = project(test_targets, basis, self.mesh.nodal_volumes)
+        ceilings = ceiling(projection, squared_norms(test.fields, self.mesh.nodal_volumes), CEILING_MODES)
+        for m, value in ceilings.items():
+            self.log(f"  best {m:>3}-term approximation of the test targets: DCM {value:6.2f} %")
+        kept = basis[..., : self.config.modes].contiguous()
+        torch.save({"basis": kept, "singular": singular, "ceiling": ceilings}, path)
+        return kept
+
+    # -- one step -------------------------------------------------------------------------------
+
+    def _step(self) -> float:
+        c = self.config
+        picks = torch.randint(len(self.train), (c.batch,), generator=self.generator)
+        g = self.model.encoder(self.train_points[picks], self.train_mask[picks])
+        if self.basis is not None:
+            p = self.train_projection
+            loss = self._coefficient_error(g, p["g"][picks], p["missed"][picks], self.train_norm[picks]).mean()
+        else:
+            query = torch.randperm(self.mesh.node_count, generator=self.generator)[: c.query_nodes]
+            target = self.train_targets[picks[:, None], query[None, :]]
+            truth = self.train.fields[picks[:, None], query[None, :]]
+            loss = self._field_error(g, query, target, truth).mean()
+        if self.q is not None:
+            loss = loss + c.lambda_reg * self._regularization()
+        for group in self.optimizer.param_groups:
+            group["lr"] = self._learning_rate()
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        return float(loss.detach())
+
+    @staticmethod
+    def _coefficient_error(g: torch.Tensor, target: torch.Tensor, missed: Any, norm: torch.Tensor) -> torch.Tensor:
+        """Per sample ‖Φ g − r‖_V / ‖u‖_V for an L2(Ω)-orthonormal Φ."""
+        return (((g - target) ** 2).sum(1) + missed.float()).sqrt() / norm.sqrt()
+
+    def _field_error(
+        self, g: torch.Tensor, query: torch.Tensor, target: torch.Tensor, truth: torch.Tensor
+    ) -> torch.Tensor:
+        """The same ratio estimated on the `query` nodes (DeepONet, whose Φ changes every step)."""
+        assert self.model.trunk is not None
+        phi = self.model.trunk(self.positions[query])  # [Q, 3, M]
+        estimate = torch.einsum("qkm,bm->bqk", phi, g)
+        v = self.volumes[query]
+        error = ((estimate - target) ** 2).sum(-1) @ v
+        return (error / ((truth**2).sum(-1) @ v).clamp_min(1e-30) + 1e-12).sqrt()
+
+    def _regularization(self) -> torch.Tensor:
+        """Relative misfit of the direct field to the Kelvinlet field on fresh q samples."""
+        assert self.q is not None
+        nodes, displacements = self.q.draw(self.config.q_batch)
+        _, points, disp, mask = pad_points(self.mesh.positions, nodes, displacements)
+        interaction = torch.cat([points.float(), disp.float()], dim=-1)
+        g = self.model.encoder(interaction, mask)
+        if self.basis is not None:
+            kelvinlet = self.prior.evaluate(self.mesh.positions, points, disp, mask).float()
+            p = project(kelvinlet, self.basis, self.mesh.nodal_volumes)
+            return self._coefficient_error(g, p["g"], p["missed"], p["norm"].float()).mean()
+        query = torch.randperm(self.mesh.node_count, generator=self.generator)[: self.config.query_nodes]
+        kelvinlet = self.prior.evaluate(self.mesh.positions[query], points, disp, mask).float()
+        return self._field_error(g, query, kelvinlet, kelvinlet).mean()
+
+    # -- validation -----------------------------------------------------------------------------
+
+    @torch.no_grad()
+    def validate(self) -> float:
+        """Volume-weighted DCM of the served field on the val samples: exact, over every node."""
+        self.model.eval()
+        g = self.model.encoder(self.val_points, self.val_mask)
+        if self.basis is not None:
+            p = self.val_projection
+            errors = self._coefficient_error(g, p["g"], p["missed"], self.val_norm)
+        else:
+            assert self.model.trunk is not None
+            phi = self.model.trunk(self.positions)
+            estimate = torch.einsum("nkm,bm->bnk", phi, g)
+            errors = (squared_norms(estimate - self.val_targets, self.mesh.nodal_volumes) / self.val_norm).sqrt()
+        self.model.train()
+        return float(100.0 * (1.0 - errors.mean()))
+
+
+def load_reduced(run_dir: Path, config: TrainConfig) -> tuple[ReducedNet, torch.Tensor | None]:
+    """The best network of a finished run, and its POD basis (None for a DeepONet)."""
+    path = run_dir / "best.pt"
+    if not path.is_file():
+        raise TrainingInputError(path, "missing: train the model first")
+    net = ReducedNet(config.architecture, config.modes, config.width)
+    net.load_state_dict(torch.load(path, weights_only=True))
+    net.eval()
+    if net.trunk is not None:
+        return net, None
+    basis_path = run_dir / "basis.pt"
+    if not basis_path.is_file():
+        raise TrainingInputError(basis_path, "missing: the run's POD basis (train the model first)")
+    basis: torch.Tensor = torch.load(basis_path, weights_only=True)["basis"]
+    return net, basis
+
+
+def basis_ceiling(run_dir: Path) -> dict[int, float]:
+    """The test targets' best M-term DCM, as recorded when the POD was computed."""
+    saved: dict[str, Any] = torch.load(run_dir / "basis.pt", weights_only=True)
+    return {int(k): float(v) for k, v in saved["ceiling"].items()}
