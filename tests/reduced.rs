@@ -9,7 +9,10 @@ mod common;
 
 use common::models::{coarse, copy_model, engine_with_models, load_error, predict, test_models, two_graspers};
 use common::server::TestServer;
+use std::sync::Arc;
+
 use nak::engine::{Grasp, Request, Selection};
+use nak::model::OnnxModel;
 use nak::proto::v1 as pb;
 
 fn largest(field: &[f32]) -> f32 {
@@ -169,4 +172,38 @@ async fn served_over_grpc_with_the_basis_listed() {
     assert!(t.prior_us > 0.0 && t.network_us > 0.0, "{t:?}");
     assert_eq!(response.interaction_points, 20);
     server.stop().await;
+}
+
+/// With the clouds on a GPU (lavapipe in CI), a reduced model uploads its basis and evaluates prior and
+/// residual in one dispatch; the field equals the CPU path's to 1e-5 of its size (f32 sums in another
+/// order), for every node and for the surface, f32 and f16 bases alike.
+#[test]
+fn on_the_gpu_prior_and_residual_in_one_dispatch_equal_the_cpu_path() {
+    let cpu = engine_with_models(coarse());
+    let mut gpu = engine_with_models(coarse());
+    let choice = gpu
+        .use_prior_backend(nak::prior::PriorBackend::Gpu)
+        .unwrap_or_else(|e| panic!("{e}"));
+    assert!(choice.contains("GPU"), "{choice}");
+    // A model added after the clouds went to the GPU uploads its basis too.
+    let dir = test_models().join("phantom-liver-coarse/reduced-residual");
+    let late = Arc::new(OnnxModel::load(&dir, gpu.mesh(), None).unwrap());
+    assert!(!late.basis_on_gpu());
+    gpu.add_model(late.clone());
+    assert!(late.basis_on_gpu(), "the basis was not uploaded");
+    for model in ["reduced-residual", "reduced-residual-f16"] {
+        for selection in [Selection::All, Selection::Surface] {
+            let expected = predict(&cpu, model, selection.clone());
+            let request = Request {
+                model: model.into(),
+                grasps: two_graspers(cpu.mesh()),
+                selection,
+                ..Default::default()
+            };
+            let on_gpu = gpu.predict(&request).unwrap();
+            let d = max_difference(&on_gpu.displacements, &expected);
+            assert!(d <= 1e-5 * largest(&expected), "{model}: {d} of {}", largest(&expected));
+            assert!(on_gpu.timing.prior_us > 0.0 && on_gpu.timing.network_us > 0.0);
+        }
+    }
 }

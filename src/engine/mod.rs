@@ -128,14 +128,32 @@ impl Engine {
 
     /// Evaluates the prior of every whole-mesh and surface request on `backend` (listed node subsets
     /// stay on the CPU: they are small and change per request). Returns what was chosen and why.
+    /// Models added before or after move their own mesh-sized data to the GPU too.
     pub fn use_prior_backend(&mut self, backend: PriorBackend) -> Result<String, GpuError> {
         let kelvinlet = Kelvinlet::new(self.mesh.config.prior);
-        backend::attach(backend, &kelvinlet, &mut [&mut self.all_nodes, &mut self.surface_nodes])
+        let choice = backend::attach(backend, &kelvinlet, &mut [&mut self.all_nodes, &mut self.surface_nodes])?;
+        for model in self.models.values() {
+            self.attach_to_gpu(model.as_ref());
+        }
+        Ok(choice)
     }
 
     /// Serves `model` beside the others; a model of the same name is replaced.
     pub fn add_model(&mut self, model: Arc<dyn DeformationModel>) {
+        self.attach_to_gpu(model.as_ref());
         self.models.insert(model.info().name.clone(), model);
+    }
+
+    /// Lets `model` upload its data to the GPU the clouds live on (in the order
+    /// [`Self::use_prior_backend`] made them resident); a failure leaves it on the CPU.
+    fn attach_to_gpu(&self, model: &dyn DeformationModel) {
+        let Some(resident) = self.all_nodes.resident() else {
+            return;
+        };
+        let clouds = [None, Some(&self.mesh.surface_nodes[..])];
+        if let Err(e) = model.attach_gpu(&resident.gpu, &clouds) {
+            tracing::warn!(model = %model.info().name, "stays on the CPU: {e}");
+        }
     }
 
     pub fn mesh(&self) -> &Arc<TetMesh> {

@@ -3,7 +3,10 @@
 
 use std::collections::BTreeMap;
 
+use std::sync::Arc;
+
 use crate::mesh::TetMesh;
+use crate::prior::gpu::{GpuError, GpuPrior};
 use crate::prior::{InteractionPoints, Kelvinlet, NodeCloud, SolveError, Workspace};
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -64,6 +67,14 @@ pub trait DeformationModel: Send + Sync {
         out: &mut [f32],
         timing: &mut StageTiming,
     ) -> Result<(), ModelError>;
+
+    /// Called when the engine's node clouds live on `gpu`; `clouds[c]` lists the nodes of resident
+    /// cloud `c` (`None`: every node in order). A model with mesh-sized data of its own (a reduced
+    /// basis) uploads it here, so that its whole field is evaluated in one dispatch.
+    fn attach_gpu(&self, gpu: &Arc<GpuPrior>, clouds: &[Option<&[u32]>]) -> Result<(), GpuError> {
+        let _ = (gpu, clouds);
+        Ok(())
+    }
 }
 
 /// The Kelvinlet prior as a served model, named `kelvinlet`.

@@ -166,12 +166,27 @@ impl Basis {
         }
     }
 
-    /// Φ as f32 [N, 3, M], e.g. to upload it to a GPU.
-    pub fn to_f32(&self) -> Vec<f32> {
-        match &self.values {
-            Values::F32(v) => v.clone(),
-            Values::F16(v) => v.iter().map(|x| x.to_f32()).collect(),
+    /// Φ's rows [n, 3, M] in f32 for `nodes` (every node in order if `None`), e.g. to upload them to
+    /// a GPU.
+    pub fn rows_f32(&self, nodes: Option<&[u32]>) -> Vec<f32> {
+        let row = 3 * self.modes;
+        let all: Vec<u32>;
+        let nodes = match nodes {
+            Some(nodes) => nodes,
+            None => {
+                all = (0..self.nodes as u32).collect();
+                &all
+            }
+        };
+        let mut out = Vec::with_capacity(nodes.len() * row);
+        for &n in nodes {
+            let range = n as usize * row..(n as usize + 1) * row;
+            match &self.values {
+                Values::F32(v) => out.extend_from_slice(&v[range]),
+                Values::F16(v) => out.extend(v[range].iter().map(|x| x.to_f32())),
+            }
         }
+        out
     }
 }
 

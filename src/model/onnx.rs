@@ -4,7 +4,7 @@
 
 use std::collections::BTreeMap;
 use std::path::Path;
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex, OnceLock};
 use std::time::Instant;
 
 use ort::session::Session;
@@ -17,7 +17,8 @@ use super::manifest::{Manifest, Mode};
 use super::signature::{self, COEFFICIENTS, DISPLACEMENT, FEATURES, INTERACTION, Input, Output, Signature};
 use crate::engine::{DeformationModel, ModelError, ModelInfo, ModelKind, StageTiming, Target};
 use crate::mesh::TetMesh;
-use crate::prior::{InteractionPoints, Kelvinlet, NodeCloud, Workspace};
+use crate::prior::gpu::{GpuBasis, GpuError, GpuPrior};
+use crate::prior::{Coefficients, InteractionPoints, Kelvinlet, NodeCloud, Workspace};
 
 /// A model directory's files, read: `manifest.toml`, `model.onnx` and, for graphs that output
 /// coefficients, `basis.safetensors`.
@@ -48,6 +49,8 @@ pub struct OnnxModel {
     signature: Signature,
     /// Φ for graphs whose output is `coefficients`.
     basis: Option<Basis>,
+    /// Φ on the GPU the engine's clouds live on, once the engine attached one.
+    gpu_basis: OnceLock<GpuBasis>,
     reads_prior: bool,
     channels: usize,
     node_count: usize,
@@ -172,6 +175,7 @@ impl OnnxModel {
             mode: manifest.model.mode,
             signature,
             basis,
+            gpu_basis: OnceLock::new(),
             reads_prior: manifest.reads_prior(),
             channels,
             node_count: n,
@@ -205,6 +209,11 @@ impl OnnxModel {
         buffers.dirty.clear();
         self.return_buffers(buffers);
         result
+    }
+
+    /// Whether the basis lives on a GPU, where requests over resident clouds add it in one dispatch.
+    pub fn basis_on_gpu(&self) -> bool {
+        self.gpu_basis.get().is_some()
     }
 
     fn take_buffers(&self) -> Buffers {
@@ -355,6 +364,17 @@ impl DeformationModel for OnnxModel {
         &self.info
     }
 
+    fn attach_gpu(&self, gpu: &Arc<GpuPrior>, clouds: &[Option<&[u32]>]) -> Result<(), GpuError> {
+        let Some(basis) = &self.basis else {
+            return Ok(());
+        };
+        let rows = clouds.iter().map(|nodes| basis.rows_f32(*nodes)).collect();
+        let resident = gpu.upload_basis(rows, basis.modes())?;
+        // Attached once: a second engine attaching the same model keeps the first upload.
+        let _ = self.gpu_basis.set(resident);
+        Ok(())
+    }
+
     fn predict(
         &self,
         points: &InteractionPoints,
@@ -462,6 +482,16 @@ impl OnnxModel {
         out: &mut [f32],
         timing: &mut StageTiming,
     ) -> Result<(), ModelError> {
+        if let Some(gpu_basis) = self.gpu_basis.get()
+            && let Some(resident) = target.cloud.resident()
+            && gpu_basis.lives_on(&resident.gpu)
+        {
+            match self.predict_on_gpu(points, target, workspace, buffers, out, timing, gpu_basis) {
+                Ok(()) => return Ok(()),
+                // The answer is still owed: the CPU gives the same field, a little later.
+                Err(e) => tracing::warn!(model = %self.info.name, "GPU failed, this request runs on the CPU: {e}"),
+            }
+        }
         match self.mode {
             Mode::Residual => {
                 let start = Instant::now();
@@ -481,6 +511,48 @@ impl OnnxModel {
             Ok(())
         });
         timing.network_us = start.elapsed().as_secs_f32() * 1e6;
+        result
+    }
+
+    /// The interaction form with Φ on the GPU: the network gives g on the CPU, then one dispatch
+    /// evaluates prior and residual together, `Σ_j Γ_j k_j + Φ g` (DESIGN.md §7). `prior_us` is the
+    /// solve and that dispatch; `network_us` the encoder.
+    #[allow(clippy::too_many_arguments)]
+    fn predict_on_gpu(
+        &self,
+        points: &InteractionPoints,
+        target: Target<'_>,
+        workspace: &mut Workspace,
+        buffers: &mut Buffers,
+        out: &mut [f32],
+        timing: &mut StageTiming,
+        basis: &GpuBasis,
+    ) -> Result<(), ModelError> {
+        let start = Instant::now();
+        fill_interaction(points, &mut buffers.input);
+        let mut g = std::mem::take(&mut buffers.network);
+        self.run_network(&buffers.input, points.len(), |values| {
+            g.clear();
+            g.extend_from_slice(values);
+            Ok(())
+        })?;
+        timing.network_us = start.elapsed().as_secs_f32() * 1e6;
+        let start = Instant::now();
+        let empty = Coefficients::default();
+        let coefficients = match self.mode {
+            Mode::Residual => {
+                self.prior.solve(points, workspace)?;
+                &workspace.coefficients
+            }
+            Mode::Direct => &empty,
+        };
+        let cloud = target.cloud.resident().map_or(0, |r| r.cloud);
+        let result = basis
+            .gpu()
+            .evaluate_with_basis(&self.prior, cloud, coefficients, basis, &g, out)
+            .map_err(|e| ModelError::Runtime(e.to_string()));
+        buffers.network = g;
+        timing.prior_us = start.elapsed().as_secs_f32() * 1e6;
         result
     }
 }

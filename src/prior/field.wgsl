@@ -1,6 +1,8 @@
 // The multi-point regularized Kelvinlet field (DESIGN.md §3), one invocation per node:
 // u(x) = Σ_j [(a/r_ε + b/r_ε³) k_j + r (r·k_j)/r_ε³],  r = x − x_j,  r_ε = sqrt(|r|² + ε²),
 // with the scale s folded into the coefficients k_j (as in the CPU kernel, kernel.rs).
+// A request may add a resident basis's field Φ g (a reduced network's residual, DESIGN.md §7) in the
+// same pass: Φ's rows [N, 3, M] for the request's cloud, g in `points` after its interaction points.
 // One dispatch serves a batch of requests: workgroup row y is request y.
 
 struct Job {
@@ -15,12 +17,18 @@ struct Job {
     a: f32,
     b: f32,
     epsilon_sq: f32,
+    // Modes of the basis to add (0: none), where the cloud's rows start in `basis` (floats), and
+    // where g starts in `points` (vec4s).
+    modes: u32,
+    basis_offset: u32,
+    coefficient_offset: u32,
 }
 
 @group(0) @binding(0) var<storage, read> positions: array<vec4<f32>>;
 @group(0) @binding(1) var<storage, read> points: array<vec4<f32>>;
 @group(0) @binding(2) var<storage, read> jobs: array<Job>;
 @group(0) @binding(3) var<storage, read_write> field: array<f32>;
+@group(0) @binding(4) var<storage, read> basis: array<f32>;
 
 @compute @workgroup_size(64)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
@@ -38,6 +46,11 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
         let inv = 1.0 / sqrt(dot(r, r) + job.epsilon_sq);
         let inv3 = inv * inv * inv;
         u += (job.a * inv + job.b * inv3) * k + (dot(r, k) * inv3) * r;
+    }
+    let row = job.basis_offset + 3u * job.modes * i;
+    for (var m = 0u; m < job.modes; m++) {
+        let g = points[job.coefficient_offset + m / 4u][m % 4u];
+        u += g * vec3<f32>(basis[row + m], basis[row + job.modes + m], basis[row + 2u * job.modes + m]);
     }
     let o = job.out_offset + 3u * i;
     field[o] = u.x;

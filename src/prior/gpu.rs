@@ -38,6 +38,8 @@ struct Job {
     constants: [f32; 3],
     /// Per point: position (xyz, 0) and coefficient (xyz, 0).
     points: Vec<[f32; 8]>,
+    /// A resident basis and its coefficients g: Φ g is added to the field in the same dispatch.
+    basis: Option<(usize, Vec<f32>)>,
 }
 
 struct Submission {
@@ -45,9 +47,43 @@ struct Submission {
     reply: SyncSender<Result<Vec<Vec<f32>>, GpuError>>,
 }
 
+/// A basis to keep on the device: its rows [len, 3, M] for each resident cloud, in cloud order.
+struct Upload {
+    per_cloud: Vec<Vec<f32>>,
+    reply: SyncSender<Result<usize, GpuError>>,
+}
+
+enum Message {
+    Evaluate(Submission),
+    Upload(Upload),
+}
+
+/// A reduced basis Φ resident on the GPU (uploaded by [`GpuPrior::upload_basis`]).
+#[derive(Debug, Clone)]
+pub struct GpuBasis {
+    gpu: Arc<GpuPrior>,
+    id: usize,
+    modes: usize,
+}
+
+impl GpuBasis {
+    /// Whether fields over clouds resident on `gpu` can add this basis in their dispatch.
+    pub fn lives_on(&self, gpu: &Arc<GpuPrior>) -> bool {
+        Arc::ptr_eq(&self.gpu, gpu)
+    }
+
+    pub fn modes(&self) -> usize {
+        self.modes
+    }
+
+    pub fn gpu(&self) -> &Arc<GpuPrior> {
+        &self.gpu
+    }
+}
+
 /// A handle to the GPU worker; cheap to share.
 pub struct GpuPrior {
-    sender: Mutex<Sender<Submission>>,
+    sender: Mutex<Sender<Message>>,
     adapter: String,
     clouds: Vec<usize>,
 }
@@ -110,30 +146,42 @@ impl GpuPrior {
         &self.adapter
     }
 
+    fn send(&self, message: Message) -> Result<(), GpuError> {
+        self.sender
+            .lock()
+            .map_err(|_| GpuError::Stopped)?
+            .send(message)
+            .map_err(|_| GpuError::Stopped)
+    }
+
+    fn job(kelvinlet: &Kelvinlet, cloud: usize, c: &Coefficients, basis: Option<(usize, Vec<f32>)>) -> Job {
+        Job {
+            cloud,
+            constants: [kelvinlet.a as f32, kelvinlet.b as f32, kelvinlet.epsilon_sq as f32],
+            points: (0..c.len())
+                .map(|j| [c.x[j], c.y[j], c.z[j], 0.0, c.kx[j], c.ky[j], c.kz[j], 0.0])
+                .collect(),
+            basis,
+        }
+    }
+
+    fn submit(&self, jobs: Vec<Job>) -> Result<Vec<Vec<f32>>, GpuError> {
+        let (reply, answer) = mpsc::sync_channel(1);
+        self.send(Message::Evaluate(Submission { jobs, reply }))?;
+        answer.recv().map_err(|_| GpuError::Stopped)?
+    }
+
     /// Evaluates several requests in one dispatch; each is (cloud index, coefficients).
     pub fn evaluate_batch(
         &self,
         kelvinlet: &Kelvinlet,
         requests: &[(usize, &Coefficients)],
     ) -> Result<Vec<Vec<f32>>, GpuError> {
-        let constants = [kelvinlet.a as f32, kelvinlet.b as f32, kelvinlet.epsilon_sq as f32];
         let jobs = requests
             .iter()
-            .map(|&(cloud, c)| Job {
-                cloud,
-                constants,
-                points: (0..c.len())
-                    .map(|j| [c.x[j], c.y[j], c.z[j], 0.0, c.kx[j], c.ky[j], c.kz[j], 0.0])
-                    .collect(),
-            })
+            .map(|&(cloud, c)| Self::job(kelvinlet, cloud, c, None))
             .collect();
-        let (reply, answer) = mpsc::sync_channel(1);
-        self.sender
-            .lock()
-            .map_err(|_| GpuError::Stopped)?
-            .send(Submission { jobs, reply })
-            .map_err(|_| GpuError::Stopped)?;
-        answer.recv().map_err(|_| GpuError::Stopped)?
+        self.submit(jobs)
     }
 
     /// Writes the field of `coefficients` over resident cloud `cloud` into `out` ((N, 3) rows).
@@ -144,15 +192,67 @@ impl GpuPrior {
         coefficients: &Coefficients,
         out: &mut [f32],
     ) -> Result<(), GpuError> {
+        self.evaluate_into(Self::job(kelvinlet, cloud, coefficients, None), out)
+    }
+
+    /// Writes `Σ_j Γ_j k_j + Φ g` over resident cloud `cloud` into `out` in one dispatch: the
+    /// Kelvinlet field of `coefficients` (none for a direct model) plus the basis's field of `g`.
+    pub fn evaluate_with_basis(
+        &self,
+        kelvinlet: &Kelvinlet,
+        cloud: usize,
+        coefficients: &Coefficients,
+        basis: &GpuBasis,
+        g: &[f32],
+        out: &mut [f32],
+    ) -> Result<(), GpuError> {
+        if g.len() != basis.modes {
+            return Err(GpuError::Run(format!(
+                "{} coefficients for a basis of {} modes",
+                g.len(),
+                basis.modes
+            )));
+        }
+        self.evaluate_into(
+            Self::job(kelvinlet, cloud, coefficients, Some((basis.id, g.to_vec()))),
+            out,
+        )
+    }
+
+    fn evaluate_into(&self, job: Job, out: &mut [f32]) -> Result<(), GpuError> {
+        let cloud = job.cloud;
         if out.len() != 3 * self.clouds.get(cloud).copied().unwrap_or(usize::MAX) {
             return Err(GpuError::Run(format!(
                 "output of {} values for cloud {cloud}",
                 out.len()
             )));
         }
-        let mut fields = self.evaluate_batch(kelvinlet, &[(cloud, coefficients)])?;
+        let mut fields = self.submit(vec![job])?;
         out.copy_from_slice(&fields.pop().unwrap_or_default());
         Ok(())
+    }
+
+    /// Keeps a basis on the device: `per_cloud[c]` is Φ's rows [len_c, 3, M] for resident cloud `c`.
+    pub fn upload_basis(self: &Arc<Self>, per_cloud: Vec<Vec<f32>>, modes: usize) -> Result<GpuBasis, GpuError> {
+        let fits = per_cloud.len() == self.clouds.len()
+            && per_cloud
+                .iter()
+                .zip(&self.clouds)
+                .all(|(rows, &len)| rows.len() == 3 * len * modes);
+        if !fits || modes == 0 {
+            return Err(GpuError::Run(format!(
+                "a basis of {modes} modes whose rows do not match the resident clouds {:?}",
+                self.clouds
+            )));
+        }
+        let (reply, answer) = mpsc::sync_channel(1);
+        self.send(Message::Upload(Upload { per_cloud, reply }))?;
+        let id = answer.recv().map_err(|_| GpuError::Stopped)??;
+        Ok(GpuBasis {
+            gpu: self.clone(),
+            id,
+            modes,
+        })
     }
 }
 
@@ -168,6 +268,12 @@ struct JobEntry {
     a: f32,
     b: f32,
     epsilon_sq: f32,
+    /// 0 without a basis.
+    modes: u32,
+    /// Where the cloud's rows of the basis start in `basis`, in floats.
+    basis_offset: u32,
+    /// Where g starts in `points`, in vec4s.
+    coefficient_offset: u32,
 }
 
 struct Worker {
@@ -181,6 +287,10 @@ struct Worker {
     jobs: wgpu::Buffer,
     field: wgpu::Buffer,
     staging: wgpu::Buffer,
+    /// Every uploaded basis, one after another; `bases[id][cloud]` is where a cloud's rows start.
+    basis: wgpu::Buffer,
+    basis_host: Vec<f32>,
+    bases: Vec<Vec<usize>>,
     bind_group: wgpu::BindGroup,
     capacity: usize,
 }
@@ -241,7 +351,8 @@ impl Worker {
             field_size,
             wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
         );
-        let bind_group = Self::bind(&device, &pipeline, [&positions, &points, &jobs, &field]);
+        let basis = storage("basis", 16, copy_in);
+        let bind_group = Self::bind(&device, &pipeline, [&positions, &points, &jobs, &field, &basis]);
         Self {
             device,
             queue,
@@ -252,12 +363,51 @@ impl Worker {
             jobs,
             field,
             staging,
+            basis,
+            basis_host: Vec::new(),
+            bases: Vec::new(),
             bind_group,
             capacity,
         }
     }
 
-    fn bind(device: &wgpu::Device, pipeline: &wgpu::ComputePipeline, buffers: [&wgpu::Buffer; 4]) -> wgpu::BindGroup {
+    fn rebind(&mut self) {
+        self.bind_group = Self::bind(
+            &self.device,
+            &self.pipeline,
+            [&self.positions, &self.points, &self.jobs, &self.field, &self.basis],
+        );
+    }
+
+    /// Appends a basis to the device's basis buffer (rebuilt whole: uploads happen at load, not per
+    /// request) and returns its id.
+    fn upload(&mut self, upload: Upload) -> Result<usize, GpuError> {
+        let mut starts = Vec::with_capacity(upload.per_cloud.len());
+        let mut host = self.basis_host.clone();
+        for rows in &upload.per_cloud {
+            starts.push(host.len());
+            host.extend_from_slice(rows);
+        }
+        let bytes = 4 * host.len() as u64;
+        let limits = self.device.limits();
+        let largest = limits.max_storage_buffer_binding_size.min(limits.max_buffer_size);
+        if bytes > largest || host.len() > u32::MAX as usize {
+            return Err(GpuError::Run(format!(
+                "the bases need {bytes} bytes on the device; the adapter binds at most {largest}"
+            )));
+        }
+        self.basis = self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("basis"),
+            contents: bytemuck::cast_slice(&host),
+            usage: wgpu::BufferUsages::STORAGE,
+        });
+        self.basis_host = host;
+        self.bases.push(starts);
+        self.rebind();
+        Ok(self.bases.len() - 1)
+    }
+
+    fn bind(device: &wgpu::Device, pipeline: &wgpu::ComputePipeline, buffers: [&wgpu::Buffer; 5]) -> wgpu::BindGroup {
         let entries: Vec<wgpu::BindGroupEntry> = buffers
             .iter()
             .enumerate()
@@ -274,15 +424,30 @@ impl Worker {
     }
 
     /// Takes submissions as they come; whatever queued up meanwhile joins the next dispatch.
-    fn serve(mut self, receiver: Receiver<Submission>) {
-        while let Ok(first) = receiver.recv() {
+    fn serve(mut self, receiver: Receiver<Message>) {
+        let mut pending = None;
+        loop {
+            let first = match pending.take().map_or_else(|| receiver.recv(), Ok) {
+                Ok(Message::Evaluate(s)) => s,
+                Ok(Message::Upload(upload)) => {
+                    let reply = upload.reply.clone();
+                    let _ = reply.send(self.upload(upload));
+                    continue;
+                }
+                Err(_) => return,
+            };
             let mut batch = vec![first];
             let mut jobs = batch[0].jobs.len();
             while jobs < self.capacity {
                 match receiver.try_recv() {
-                    Ok(s) => {
+                    Ok(Message::Evaluate(s)) => {
                         jobs += s.jobs.len();
                         batch.push(s);
+                    }
+                    // An upload waits for the dispatch gathered so far.
+                    Ok(upload) => {
+                        pending = Some(upload);
+                        break;
                     }
                     Err(_) => break,
                 }
@@ -320,17 +485,38 @@ impl Worker {
                 .clouds
                 .get(job.cloud)
                 .ok_or_else(|| GpuError::Run(format!("no resident cloud {}", job.cloud)))?;
+            let point_offset = points.len();
+            points.extend_from_slice(&job.points);
+            let (modes, basis_offset, coefficient_offset) = match &job.basis {
+                None => (0, 0, 0),
+                Some((id, g)) => {
+                    let start = self
+                        .bases
+                        .get(*id)
+                        .and_then(|b| b.get(job.cloud))
+                        .ok_or_else(|| GpuError::Run(format!("no resident basis {id}")))?;
+                    // g rides in the points buffer, 8 floats (two vec4s) per entry.
+                    let at = 2 * points.len();
+                    points.extend(
+                        g.chunks(8)
+                            .map(|c| std::array::from_fn(|i| c.get(i).copied().unwrap_or(0.0))),
+                    );
+                    (g.len() as u32, *start as u32, at as u32)
+                }
+            };
             entries.push(JobEntry {
                 cloud_offset: offset as u32,
                 cloud_len: len as u32,
-                point_offset: points.len() as u32,
+                point_offset: point_offset as u32,
                 point_count: job.points.len() as u32,
                 out_offset: out as u32,
                 a: job.constants[0],
                 b: job.constants[1],
                 epsilon_sq: job.constants[2],
+                modes,
+                basis_offset,
+                coefficient_offset,
             });
-            points.extend_from_slice(&job.points);
             out += 3 * len;
         }
         let point_bytes = (32 * points.len()) as u64;
@@ -341,11 +527,7 @@ impl Worker {
                 usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
                 mapped_at_creation: false,
             });
-            self.bind_group = Self::bind(
-                &self.device,
-                &self.pipeline,
-                [&self.positions, &self.points, &self.jobs, &self.field],
-            );
+            self.rebind();
         }
         if !points.is_empty() {
             self.queue.write_buffer(&self.points, 0, bytemuck::cast_slice(&points));

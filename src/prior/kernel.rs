@@ -66,6 +66,11 @@ impl NodeCloud {
     pub fn make_resident(&mut self, resident: Resident) {
         self.resident = Some(resident);
     }
+
+    /// Where fields over this cloud are evaluated, if on a GPU.
+    pub fn resident(&self) -> Option<&Resident> {
+        self.resident.as_ref()
+    }
 }
 
 /// Kernel constants in f32.
