@@ -4,11 +4,9 @@
 //! `basis.safetensors` holds one tensor `basis`, f32 or f16, shaped [N, 3, M] — node-major, so a
 //! node's three rows are 3·M contiguous values and any subset of nodes (a surface or a listed
 //! selection) costs only its own rows — and the metadata key `mesh_hash`, the content hash of the
-//! mesh it was made on. The product is memory-bound (9,701 × 3 × 64 values: 7.4 MB in f32, 3.7 MB in
-//! f16), so f16 storage halves its time; accumulation is f32 either way.
+//! mesh it was made on. The whole-mesh product streams 9,701 × 3 × 64 values (7.4 MB in f32, 3.7 MB
+//! in f16) through the cache, so f16 storage can halve its time; accumulation is f32 either way.
 
-use half::f16;
-use half::slice::HalfFloatSliceExt;
 use multiversion::multiversion;
 use rayon::prelude::*;
 use safetensors::SafeTensors;
@@ -21,28 +19,60 @@ pub const FILE: &str = "basis.safetensors";
 pub const TENSOR: &str = "basis";
 pub const MESH_HASH_KEY: &str = "mesh_hash";
 
-/// Nodes per unit of work: 16 nodes of 3 × 64 f16 values (6 KB) convert to f32 within L1.
-const NODES_PER_BLOCK: usize = 16;
+/// Most modes a basis may have.
+pub const MAX_MODES: usize = 1024;
+/// Nodes per tile. In memory Φ is stored in tiles of TILE nodes, mode-major within a tile
+/// ([N/TILE, M, 3·TILE]): a tile's product is M multiply-adds of 48 contiguous values into 48
+/// accumulators that stay in registers — no horizontal sums — and a tile of 64 f16 modes is 6 KB.
+const TILE: usize = 16;
+const TILE_ROWS: usize = 3 * TILE;
 /// Below this many nodes one core is faster than waking another.
 const PARALLEL_MIN_NODES: usize = 2048;
-/// Most modes a basis may have: the f16 conversion buffer holds at least 16 rows of this many.
-pub const MAX_MODES: usize = 768;
-/// Independent accumulators per dot product: wide enough for one AVX-512 register, and what lets
-/// the compiler vectorize an f32 sum without reassociating it.
-const LANES: usize = 16;
+/// A node list at least 1/this of the mesh is answered from the whole-mesh product.
+const DENSE_LIST_FRACTION: usize = 8;
+/// Modes of an f16 tile widened at a time into an f32 scratch (48 × 8 values: 1.5 KB).
+const WIDEN_MODES: usize = 8;
 
+/// Basis values as stored: f32, or f16 as its bits (widened exactly in the product).
 #[derive(Debug, Clone, PartialEq)]
 enum Values {
     F32(Vec<f32>),
-    F16(Vec<f16>),
+    F16(Vec<u16>),
 }
 
-/// Φ, [N, 3, M] node-major.
+/// Φ, [N, 3, M], held in tiles (see [`TILE`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct Basis {
     nodes: usize,
     modes: usize,
     values: Values,
+}
+
+/// Index of node `n`'s component `c`, mode `m`, in the tiled layout.
+fn tiled(n: usize, c: usize, m: usize, modes: usize) -> usize {
+    (n / TILE) * modes * TILE_ROWS + m * TILE_ROWS + 3 * (n % TILE) + c
+}
+
+/// Rearranges node-major [N, 3, M] values into tiles, padding the last tile with zeros.
+fn tile<T: Copy + Default>(values: &[T], nodes: usize, modes: usize) -> Vec<T> {
+    let mut out = vec![T::default(); nodes.div_ceil(TILE) * TILE * 3 * modes];
+    for n in 0..nodes {
+        for c in 0..3 {
+            for m in 0..modes {
+                out[tiled(n, c, m, modes)] = values[(3 * n + c) * modes + m];
+            }
+        }
+    }
+    out
+}
+
+/// An f16's exact value as f32, branch-free so that the product's loop vectorizes: the magnitude's
+/// bits shifted into f32 position and rescaled by 2¹¹² (which also handles subnormals and zero), then
+/// the sign. Infinities and NaN are refused when the basis is read.
+#[inline(always)]
+fn widen(bits: u16) -> f32 {
+    let magnitude = f32::from_bits(u32::from(bits & 0x7fff) << 13) * f32::from_bits(0x7780_0000);
+    f32::from_bits(magnitude.to_bits() | (u32::from(bits & 0x8000) << 16))
 }
 
 impl Basis {
@@ -82,18 +112,22 @@ impl Basis {
             }
         };
         let data = view.data();
-        let values = match view.dtype() {
-            Dtype::F32 => Values::F32(
-                data.chunks_exact(4)
+        let (values, finite) = match view.dtype() {
+            Dtype::F32 => {
+                let v: Vec<f32> = data
+                    .chunks_exact(4)
                     .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-                    .collect(),
-            ),
-            Dtype::F16 => Values::F16(data.chunks_exact(2).map(|b| f16::from_le_bytes([b[0], b[1]])).collect()),
+                    .collect();
+                let finite = v.iter().all(|x| x.is_finite());
+                (Values::F32(tile(&v, n, modes)), finite)
+            }
+            Dtype::F16 => {
+                let v: Vec<u16> = data.chunks_exact(2).map(|b| u16::from_le_bytes([b[0], b[1]])).collect();
+                // An all-ones exponent is an infinity or NaN.
+                let finite = v.iter().all(|x| x & 0x7c00 != 0x7c00);
+                (Values::F16(tile(&v, n, modes)), finite)
+            }
             other => return Err(refuse(format!("{TENSOR} is {other:?}; expected F32 or F16"))),
-        };
-        let finite = match &values {
-            Values::F32(v) => v.iter().all(|x| x.is_finite()),
-            Values::F16(v) => v.iter().all(|x| x.is_finite()),
         };
         if !finite {
             return Err(refuse(format!("{TENSOR} holds values that are not finite")));
@@ -118,51 +152,57 @@ impl Basis {
         }
     }
 
-    /// Bytes of basis a whole-mesh product reads.
-    pub fn size_bytes(&self) -> usize {
-        match &self.values {
-            Values::F32(v) => 4 * v.len(),
-            Values::F16(v) => 2 * v.len(),
-        }
-    }
-
     /// Adds Φ g at `nodes` (every node in order if `None`) to `out`, row-major (n, 3).
     pub fn add_product(&self, g: &[f32], nodes: Option<&[u32]>, out: &mut [f32]) {
         debug_assert_eq!(g.len(), self.modes, "coefficients do not match the basis");
-        let row = 3 * self.modes;
-        match (nodes, &self.values) {
-            (None, values) => {
+        let tile_len = self.modes * TILE_ROWS;
+        match nodes {
+            None => {
                 debug_assert_eq!(out.len(), 3 * self.nodes);
-                let block = |(b, chunk): (usize, &mut [f32])| {
-                    let first = b * NODES_PER_BLOCK;
-                    let count = chunk.len() / 3;
-                    match values {
-                        Values::F32(v) => add_rows_f32(&v[first * row..(first + count) * row], g, chunk),
-                        Values::F16(v) => add_rows_f16(&v[first * row..(first + count) * row], g, chunk),
-                    }
+                let run = |(t, chunk): (usize, &mut [f32])| match &self.values {
+                    Values::F32(v) => add_tile_f32(&v[t * tile_len..(t + 1) * tile_len], g, chunk),
+                    Values::F16(v) => add_tile_f16(&v[t * tile_len..(t + 1) * tile_len], g, chunk),
                 };
                 if self.nodes >= PARALLEL_MIN_NODES {
-                    out.par_chunks_mut(3 * NODES_PER_BLOCK)
-                        .enumerate()
-                        .with_min_len(8)
-                        .for_each(block);
+                    out.par_chunks_mut(TILE_ROWS).enumerate().with_min_len(16).for_each(run);
                 } else {
-                    out.chunks_mut(3 * NODES_PER_BLOCK).enumerate().for_each(block);
+                    out.chunks_mut(TILE_ROWS).enumerate().for_each(run);
                 }
             }
-            // Listed nodes are few and scattered: one node's rows at a time, on this core.
-            (Some(nodes), Values::F32(v)) => {
+            // Many listed nodes (a surface) touch most tiles: the whole product, then their rows.
+            Some(nodes) if nodes.len() * DENSE_LIST_FRACTION >= self.nodes => {
+                let mut field = vec![0.0f32; 3 * self.nodes];
+                self.add_product(g, None, &mut field);
                 for (&n, dst) in nodes.iter().zip(out.chunks_exact_mut(3)) {
-                    let n = n as usize;
-                    add_rows_f32(&v[n * row..(n + 1) * row], g, dst);
+                    for (d, v) in dst.iter_mut().zip(&field[3 * n as usize..3 * n as usize + 3]) {
+                        *d += v;
+                    }
                 }
             }
-            (Some(nodes), Values::F16(v)) => {
-                for (&n, dst) in nodes.iter().zip(out.chunks_exact_mut(3)) {
-                    let n = n as usize;
-                    add_rows_f16(&v[n * row..(n + 1) * row], g, dst);
+            // A few scattered nodes: each reads its three values per mode from its tile.
+            Some(nodes) => match &self.values {
+                Values::F32(v) => self.add_listed(nodes, g, out, |i| v[i]),
+                Values::F16(v) => self.add_listed(nodes, g, out, |i| widen(v[i])),
+            },
+        }
+    }
+
+    fn add_listed(&self, nodes: &[u32], g: &[f32], out: &mut [f32], value: impl Fn(usize) -> f32) {
+        for (&n, dst) in nodes.iter().zip(out.chunks_exact_mut(3)) {
+            let first = tiled(n as usize, 0, 0, self.modes);
+            for (m, &gm) in g.iter().enumerate() {
+                let at = first + m * TILE_ROWS;
+                for (c, d) in dst.iter_mut().enumerate() {
+                    *d += gm * value(at + c);
                 }
             }
+        }
+    }
+
+    fn value(&self, index: usize) -> f32 {
+        match &self.values {
+            Values::F32(v) => v[index],
+            Values::F16(v) => widen(v[index]),
         }
     }
 
@@ -180,49 +220,104 @@ impl Basis {
         };
         let mut out = Vec::with_capacity(nodes.len() * row);
         for &n in nodes {
-            let range = n as usize * row..(n as usize + 1) * row;
-            match &self.values {
-                Values::F32(v) => out.extend_from_slice(&v[range]),
-                Values::F16(v) => out.extend(v[range].iter().map(|x| x.to_f32())),
+            for c in 0..3 {
+                out.extend((0..self.modes).map(|m| self.value(tiled(n as usize, c, m, self.modes))));
             }
         }
         out
     }
 }
 
-/// `out[r] += rows[r, :] · g` for consecutive rows of M values (`rows.len() == out.len() * M`).
+/// `out[r] += Σ_m g[m] · tile[m, r]` over one tile's rows (`out` is shorter in the last tile).
 #[multiversion(targets(
     "x86_64+avx512f+avx512vl+avx2+fma",
     "x86_64+avx2+fma",
     "x86_64+sse4.1",
     "aarch64+neon"
 ))]
-fn add_rows_f32(rows: &[f32], g: &[f32], out: &mut [f32]) {
-    for (row, o) in rows.chunks_exact(g.len()).zip(out.iter_mut()) {
-        *o += dot(row, g);
-    }
-}
-
-/// [`add_rows_f32`] over f16 rows: converted a block at a time (F16C where the CPU has it).
-fn add_rows_f16(rows: &[f16], g: &[f32], out: &mut [f32]) {
-    let mut converted = [0.0f32; 16 * MAX_MODES];
-    let per_chunk = converted.len() / g.len();
-    for (chunk, o) in rows.chunks(per_chunk * g.len()).zip(out.chunks_mut(per_chunk)) {
-        let buffer = &mut converted[..chunk.len()];
-        chunk.convert_to_f32_slice(buffer);
-        add_rows_f32(buffer, g, o);
-    }
-}
-
-#[inline(always)]
-fn dot(row: &[f32], g: &[f32]) -> f32 {
-    let mut acc = [0.0f32; LANES];
-    let whole = row.len() / LANES * LANES;
-    for (r, w) in row[..whole].chunks_exact(LANES).zip(g[..whole].chunks_exact(LANES)) {
-        for l in 0..LANES {
-            acc[l] += r[l] * w[l];
+fn add_tile_f32(tile: &[f32], g: &[f32], out: &mut [f32]) {
+    let mut acc = [0.0f32; TILE_ROWS];
+    for (column, &gm) in tile.chunks_exact(TILE_ROWS).zip(g) {
+        for r in 0..TILE_ROWS {
+            acc[r] += gm * column[r];
         }
     }
-    let tail: f32 = row[whole..].iter().zip(&g[whole..]).map(|(r, w)| r * w).sum();
-    acc.iter().sum::<f32>() + tail
+    for (o, a) in out.iter_mut().zip(acc) {
+        *o += a;
+    }
+}
+
+/// [`add_tile_f32`] over f16 bits: a few modes at a time are widened into an f32 scratch (a plain
+/// map that vectorizes), then multiplied as f32.
+#[multiversion(targets(
+    "x86_64+avx512f+avx512vl+avx2+fma",
+    "x86_64+avx2+fma",
+    "x86_64+sse4.1",
+    "aarch64+neon"
+))]
+fn add_tile_f16(tile: &[u16], g: &[f32], out: &mut [f32]) {
+    let mut acc = [0.0f32; TILE_ROWS];
+    let mut wide = [0.0f32; TILE_ROWS * WIDEN_MODES];
+    for (chunk, gs) in tile.chunks(TILE_ROWS * WIDEN_MODES).zip(g.chunks(WIDEN_MODES)) {
+        for (w, &bits) in wide.iter_mut().zip(chunk) {
+            *w = widen(bits);
+        }
+        for (column, &gm) in wide.chunks_exact(TILE_ROWS).zip(gs) {
+            for r in 0..TILE_ROWS {
+                acc[r] += gm * column[r];
+            }
+        }
+    }
+    for (o, a) in out.iter_mut().zip(acc) {
+        *o += a;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Every finite f16 widens to exactly the value the `half` crate gives.
+    #[test]
+    fn widening_is_exact_for_every_finite_f16() {
+        for bits in 0..=u16::MAX {
+            let reference = half::f16::from_bits(bits);
+            if reference.is_finite() {
+                assert_eq!(widen(bits).to_bits(), reference.to_f32().to_bits(), "bits {bits:#06x}");
+            }
+        }
+    }
+
+    /// The tiled product equals a plain sum over node-major rows, for every node and for a list, with
+    /// a node count that leaves the last tile partial.
+    #[test]
+    fn the_tiled_product_equals_the_plain_sum() {
+        let (nodes, modes) = (37, 5);
+        let rows: Vec<f32> = (0..nodes * 3 * modes)
+            .map(|i| ((i * 7919) % 101) as f32 / 50.0 - 1.0)
+            .collect();
+        let basis = Basis {
+            nodes,
+            modes,
+            values: Values::F32(tile(&rows, nodes, modes)),
+        };
+        let g = [0.5f32, -1.25, 2.0, 0.125, -0.75];
+        let expected: Vec<f32> = (0..3 * nodes)
+            .map(|r| (0..modes).map(|m| rows[r * modes + m] * g[m]).sum())
+            .collect();
+        let mut all = vec![1.0f32; 3 * nodes];
+        basis.add_product(&g, None, &mut all);
+        let listed_nodes = [36u32, 0, 17, 17];
+        let mut listed = vec![0.0f32; 3 * listed_nodes.len()];
+        basis.add_product(&g, Some(&listed_nodes), &mut listed);
+        for r in 0..3 * nodes {
+            assert!((all[r] - 1.0 - expected[r]).abs() < 1e-5, "row {r}");
+        }
+        for (i, &n) in listed_nodes.iter().enumerate() {
+            for c in 0..3 {
+                assert!((listed[3 * i + c] - expected[3 * n as usize + c]).abs() < 1e-5);
+            }
+        }
+        assert_eq!(basis.rows_f32(None), rows);
+    }
 }
