@@ -1,7 +1,8 @@
-//! Per-stage latency of the ONNX test models on the paper-scale phantom (9,701 nodes), one grasper of
-//! ten nodes: the whole prediction in criterion, and the mean prior / network split from the engine's
-//! own stage timing; and green-linear at K = 10 and K = 20. Needs ORT_DYLIB_PATH
-//! (scripts/onnxruntime-path); green-linear's cache goes to target/green-cache.
+//! Per-stage latency of the ONNX test models and the shipped reduced-basis networks `pod-res(-fast)` on the
+//! paper-scale phantom (9,701 nodes), one grasper of ten nodes: the whole prediction in criterion, and
+//! the mean prior / network split from the engine's own stage timing; and green-linear at K = 10 and
+//! K = 20. Needs ORT_DYLIB_PATH (scripts/onnxruntime-path); green-linear's cache goes to
+//! target/green-cache.
 
 use std::path::Path;
 use std::sync::Arc;
@@ -11,8 +12,10 @@ use nak::engine::{DeformationModel, Engine, Grasp, Limits, Request};
 use nak::fem::{GreenLinear, GreenLinearModel};
 use nak::mesh::{self, MeshSource};
 
-const MODELS: [&str; 5] = [
+const MODELS: [&str; 7] = [
     "kelvinlet",
+    "pod-res-fast",
+    "pod-res",
     "mlp-residual",
     "mlp-direct-prior",
     "pointnet-residual",
@@ -25,6 +28,13 @@ fn models(c: &mut Criterion) {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/models/phantom-liver");
     for model in nak::model::load_all(&dir, &mesh, None).expect("test models (is ORT_DYLIB_PATH set?)") {
         engine.add_model(Arc::new(model) as Arc<dyn DeformationModel>);
+    }
+    for name in ["pod-res-fast", "pod-res"] {
+        let shipped = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("models/phantom-liver")
+            .join(name);
+        let reduced = nak::model::OnnxModel::load(&shipped, &mesh, None).expect("the shipped reduced networks");
+        engine.add_model(Arc::new(reduced));
     }
     let request = |model: &str| Request {
         model: model.into(),

@@ -32,7 +32,7 @@ def load_stubs() -> tuple[ModuleType, ModuleType]:
     return importlib.import_module("nak.v1.deformation_pb2"), importlib.import_module("nak.v1.deformation_pb2_grpc")
 
 
-BEST_MODEL = "pointnet-res"
+BEST_MODEL = "pod-res"
 
 
 def main(target: str = "127.0.0.1:50051", model: str = BEST_MODEL) -> np.ndarray:

@@ -101,12 +101,15 @@ impl OnnxModel {
         manifest.check_against(mesh, origin)?;
         let onnx_path = format!("{origin}/model.onnx");
         let environment = super::runtime::environment(ort_dylib)?;
+        // An interaction graph is a few small operators over K points: waking a second thread for
+        // each (spinning is off, to leave the cores to the prior) costs more than it saves.
+        let intra_threads = if manifest.reads_interaction() { 1 } else { threads() };
         let session = Session::builder(environment)
             .and_then(|b| {
                 b.with_optimization_level(GraphOptimizationLevel::Level3)
                     .map_err(Into::into)
             })
-            .and_then(|b| b.with_intra_threads(threads()).map_err(Into::into))
+            .and_then(|b| b.with_intra_threads(intra_threads).map_err(Into::into))
             .and_then(|b| b.with_intra_op_spinning(false).map_err(Into::into))
             .and_then(|mut b| b.commit_from_memory(files.onnx))
             .map_err(|e| ModelLoadError::new(&onnx_path, format!("ONNX Runtime cannot load it: {e}")))?;
@@ -492,25 +495,49 @@ impl OnnxModel {
                 Err(e) => tracing::warn!(model = %self.info.name, "GPU failed, this request runs on the CPU: {e}"),
             }
         }
-        match self.mode {
-            Mode::Residual => {
-                let start = Instant::now();
-                self.prior.solve(points, workspace)?;
-                self.prior.evaluate(&workspace.coefficients, target.cloud, out);
-                timing.prior_us = start.elapsed().as_secs_f32() * 1e6;
+        // The encoder (ONNX Runtime, one thread) runs beside the prior (the rayon pool); the network's
+        // share is added once both are done, while the pool's threads are still awake.
+        let mut output = std::mem::take(&mut buffers.network);
+        let input = &mut buffers.input;
+        let mut encoder_us = 0.0;
+        let mut encode = |output: &mut Vec<f32>, encoder_us: &mut f32| {
+            let start = Instant::now();
+            fill_interaction(points, input);
+            let result = self.run_network(input, points.len(), |values| {
+                output.clear();
+                output.extend_from_slice(values);
+                Ok(())
+            });
+            *encoder_us = start.elapsed().as_secs_f32() * 1e6;
+            result
+        };
+        let (prior, encoded) = match self.mode {
+            Mode::Residual => rayon::join(
+                || {
+                    let start = Instant::now();
+                    let result = self.prior.solve(points, workspace).map(|()| {
+                        self.prior.evaluate(&workspace.coefficients, target.cloud, out);
+                    });
+                    timing.prior_us = start.elapsed().as_secs_f32() * 1e6;
+                    result
+                },
+                || encode(&mut output, &mut encoder_us),
+            ),
+            Mode::Direct => {
+                out.fill(0.0);
+                (Ok(()), encode(&mut output, &mut encoder_us))
             }
-            Mode::Direct => out.fill(0.0),
-        }
+        };
         let start = Instant::now();
-        fill_interaction(points, &mut buffers.input);
-        let result = self.run_network(&buffers.input, points.len(), |values| {
-            match &self.basis {
-                Some(basis) => basis.add_product(values, target.nodes, out),
-                None => gather(values, target, out, true),
-            }
-            Ok(())
-        });
-        timing.network_us = start.elapsed().as_secs_f32() * 1e6;
+        let result = prior
+            .map_err(ModelError::from)
+            .and(encoded)
+            .map(|()| match &self.basis {
+                Some(basis) => basis.add_product(&output, target.nodes, out),
+                None => gather(&output, target, out, true),
+            });
+        timing.network_us = encoder_us + start.elapsed().as_secs_f32() * 1e6;
+        buffers.network = output;
         result
     }
 

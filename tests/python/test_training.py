@@ -238,7 +238,7 @@ def test_training_beats_the_untrained_network_through_nak_eval(
 @pytest.fixture(scope="module")
 def reduced(coarse_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Reduced-basis networks from the coarse dataset: a trained POD +Res in three shipping forms (f32
-    and f16 basis files, folded graph), its untrained twin, and a DeepONet +Reg."""
+    and f16 basis files, folded graph), its untrained twin, and a DeepONet +Reg with the pooled encoder."""
     dataset = open_dataset(coarse_data)
     runs = tmp_path_factory.mktemp("reduced-runs")
     models = tmp_path_factory.mktemp("reduced-models")
@@ -248,7 +248,16 @@ def reduced(coarse_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path
         dict(name="pod-f16", basis_precision="f16", **pod),
         dict(name="pod-graph", form="graph", **pod),
         dict(name="pod-untrained", **{**pod, "steps": 1, "lr": 1e-12}),
-        dict(name="deeponet-reg", architecture="deeponet", method="reg", modes=8, width=32, steps=30, batch=4),
+        dict(
+            name="deeponet-reg",
+            architecture="deeponet",
+            method="reg",
+            encoder="pooled",
+            modes=8,
+            width=32,
+            steps=30,
+            batch=4,
+        ),
     ]
     for values in variants:
         config = parse_config(tiny_config(**values), "tiny")

@@ -2,6 +2,7 @@
 
 python -m nak_training all --config training/configs/pointnet-reg.toml --data DATA
 python -m nak_training train|export|evaluate --config C --data DATA
+python -m nak_training forms --config C --data DATA     (a reduced network's shipping forms, timed)
 python -m nak_training report --data DATA
 """
 
@@ -28,6 +29,7 @@ def main(argv: list[str] | None = None) -> int:
         ("export", "export the best checkpoint to ONNX + manifest + config"),
         ("evaluate", "score the exported model with nak eval; write its [metrics]"),
         ("all", "train, export and evaluate"),
+        ("forms", "export a reduced network as f32 and f16 basis files and folded into the graph; time each"),
     ]:
         command = commands.add_parser(name, help=text)
         command.add_argument("--config", type=Path, required=True, help="training configuration (TOML)")
@@ -75,6 +77,10 @@ def run(command: str, config: TrainConfig, args: argparse.Namespace) -> None:
         from .export import export
 
         export(config, dataset, args.runs / config.name, args.out)
+    if command == "forms":
+        from .evaluate import compare_forms
+
+        compare_forms(config, dataset, args.runs / config.name, args.runs / "forms", args.nak, args.mesh)
     if command in ("evaluate", "all"):
         from .evaluate import evaluate
 

@@ -10,7 +10,7 @@ from typing import Any
 
 from .errors import TrainingInputError
 from .models import ARCHITECTURES, SIZES
-from .reduced import REDUCED_ARCHITECTURES
+from .reduced import ENCODERS, REDUCED_ARCHITECTURES
 
 METHODS = {"base": "direct", "res": "residual", "reg": "direct"}
 PRECISIONS = ("f16", "f32")
@@ -43,6 +43,7 @@ class TrainConfig:
     # Reduced-basis networks (pod, deeponet): modes M, encoder width, basis storage, how it ships.
     modes: int = 64
     width: int = 256
+    encoder: str = "linear"  # linear (more accurate) | pooled (fewer operators, faster)
     basis_precision: str = "f16"
     form: str = "basis"
     seed: int = 0
@@ -81,6 +82,7 @@ def parse_config(values: dict[str, Any], origin: str) -> TrainConfig:
         "subset": tuple(SUBSETS),
         "basis_precision": PRECISIONS,
         "form": FORMS,
+        "encoder": ENCODERS,
     }
     for key, allowed in choices.items():
         if key in values and values[key] not in allowed:

@@ -5,6 +5,7 @@ manifest's [metrics]; nothing here is computed by PyTorch.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import tempfile
@@ -14,8 +15,10 @@ from typing import Any
 
 import tomli_w
 
+from .config import TrainConfig
+from .dataset import Dataset
 from .errors import TrainingInputError
-from .export import MANIFEST_HEADER
+from .export import CEILING_PREFIX, MANIFEST_HEADER, export
 
 
 def nak_eval(
@@ -68,8 +71,32 @@ def evaluate(model_dir: Path, data: Path, nak: Path, mesh: Path) -> dict[str, An
     with tempfile.TemporaryDirectory() as alone:
         (Path(alone) / model_dir.name).symlink_to(model_dir.resolve(), target_is_directory=True)
         report = nak_eval(nak, data, name, mesh, Path(alone))
-    metrics = {"val_dcm": manifest.get("metrics", {}).get("val_dcm"), **metrics_of(report)}
+    kept = {k: v for k, v in manifest.get("metrics", {}).items() if k == "val_dcm" or k.startswith(CEILING_PREFIX)}
+    metrics = {**kept, **metrics_of(report)}
     written = {k: v for k, v in metrics.items() if v is not None}
     manifest["metrics"] = written
     manifest_path.write_text(MANIFEST_HEADER + tomli_w.dumps(manifest))
     return written
+
+
+FORMS = (("f32", "basis", "f32"), ("f16", "basis", "f16"), ("graph", "graph", "f32"))
+
+
+def compare_forms(
+    config: TrainConfig, dataset: Dataset, run_dir: Path, out_root: Path, nak: Path, mesh: Path
+) -> list[dict[str, Any]]:
+    """Exports one trained reduced network in each way its basis can ship (an f32 or f16 basis file
+    that nak multiplies, or folded into the graph for ONNX Runtime) and times each through nak eval.
+    The DCM must agree (to f16 rounding); the network time says where the product is fastest."""
+    if not config.reduced:
+        raise TrainingInputError(config.name, "forms compares the shipping forms of a reduced network (pod, deeponet)")
+    rows = []
+    for suffix, form, precision in FORMS:
+        variant = dataclasses.replace(config, name=f"{config.name}-{suffix}", form=form, basis_precision=precision)
+        export(variant, dataset, run_dir, out_root, log=lambda _: None)
+        metrics = evaluate(out_root / variant.name, dataset.root, nak, mesh)
+        rows.append({"form": suffix, **metrics})
+    print(f"{'form':<6} {'DCM combined':>12} {'network p50 ms':>15} {'total p50 ms':>13}")
+    for r in rows:
+        print(f"{r['form']:<6} {r['dcm_combined']:>12.3f} {r['network_ms_p50']:>15.4f} {r['total_ms_p50']:>13.4f}")
+    return rows

@@ -25,12 +25,13 @@ from .config import TrainConfig
 from .dataset import Dataset, Sample
 from .errors import TrainingInputError
 from .reduced import InteractionGraph
-from .reduced_train import load_reduced
+from .reduced_train import basis_ceiling, load_reduced
 from .train import load_trained, served_features
 
 OPSET = 17
 RELATIVE_TOLERANCE = 1e-5
 BASIS_FILE = "basis.safetensors"
+CEILING_PREFIX = "basis_ceiling_dcm_m"
 CHECK_SAMPLES = 4
 MANIFEST_HEADER = (
     "# Written by `python -m nak_training export` (training/); [metrics] by `... evaluate`, through nak eval.\n"
@@ -75,7 +76,7 @@ def export(config: TrainConfig, dataset: Dataset, run_dir: Path, out_root: Path,
             "epsilon_m": float(state["epsilon"]),
             "lambda": dataset.mesh.prior[2],
         },
-        "metrics": {"val_dcm": round(float(summary["val_dcm"]), 3)},
+        "metrics": {"val_dcm": round(float(summary["val_dcm"]), 3), **ceiling_metrics(config, run_dir)},
         "provenance": provenance(config, dataset, summary, state),
     }
     (directory / "manifest.toml").write_text(MANIFEST_HEADER + tomli_w.dumps(manifest))
@@ -137,6 +138,13 @@ def write_interaction_graph(
         values = basis.float().numpy().astype(np.float16 if config.basis_precision == "f16" else np.float32)
         save_file({"basis": values}, str(directory / BASIS_FILE), metadata={"mesh_hash": dataset.mesh.content_hash})
     return ["interaction"]
+
+
+def ceiling_metrics(config: TrainConfig, run_dir: Path) -> dict[str, float]:
+    """A POD's own ceiling: the test split's DCM of the best M-term approximation of its targets."""
+    if config.architecture != "pod":
+        return {}
+    return {f"{CEILING_PREFIX}{m}": round(v, 3) for m, v in basis_ceiling(run_dir).items()}
 
 
 def checked(model: torch.nn.Module, graph: Path, inputs: list[torch.Tensor], name: str, output: str, log: Any) -> None:

@@ -50,7 +50,7 @@ class ReducedTrainer(Run):
         self.val_norm = squared_norms(self.val.fields, self.mesh.nodal_volumes).float()
         self.train_points, self.train_mask = interaction_batch(self.mesh.positions, self.train)
         self.val_points, self.val_mask = interaction_batch(self.mesh.positions, self.val)
-        net = ReducedNet(config.architecture, config.modes, config.width)
+        net = ReducedNet(config.architecture, config.modes, config.width, config.encoder)
         positions = self.mesh.positions
         u = self.train_points[..., 3:][self.train_mask]
         net.encoder.set_statistics(x_mean=positions.mean(0), x_std=positions.std(0), u_scale=(u**2).mean(0).sqrt())
@@ -182,7 +182,7 @@ def load_reduced(run_dir: Path, config: TrainConfig) -> tuple[ReducedNet, torch.
     path = run_dir / "best.pt"
     if not path.is_file():
         raise TrainingInputError(path, "missing: train the model first")
-    net = ReducedNet(config.architecture, config.modes, config.width)
+    net = ReducedNet(config.architecture, config.modes, config.width, config.encoder)
     net.load_state_dict(torch.load(path, weights_only=True))
     net.eval()
     if net.trunk is not None:

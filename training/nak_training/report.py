@@ -21,8 +21,16 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from .evaluate import metrics_of, nak_eval  # noqa: E402
+from .export import CEILING_PREFIX  # noqa: E402
 
-ARCHITECTURES = {"pointnet": "PointNet", "deepset": "DeepSet U-Net", "isab": "ISAB (SAB)"}
+ARCHITECTURES = {
+    "pointnet": "PointNet",
+    "deepset": "DeepSet U-Net",
+    "isab": "ISAB (SAB)",
+    "pod": "POD basis + set encoder",
+    "deeponet": "DeepONet + set encoder",
+}
+SIZED = ("pointnet", "deepset", "isab")
 METHODS = ("base", "res", "reg")
 METHOD_LABEL = {"base": "Base", "res": "+Res", "reg": "+Reg"}
 # Table 2 columns: (what the model was trained on, the test subset scored, heading).
@@ -96,8 +104,10 @@ def table(entries: list[Entry], key: str, baselines: dict[str, dict[str, Any]], 
     lines = [head, "|---" * (1 + 3 * len(COLUMNS)) + "|"]
     for arch, label in ARCHITECTURES.items():
         cells = [cell(entries, arch, m, trained, subset, key) for trained, subset, _ in COLUMNS for m in METHODS]
-        lines.append(f"| {label} (nak, cpu size) | " + " | ".join(cells) + " |")
-        if with_paper:
+        if all(c == "–" for c in cells):
+            continue
+        lines.append(f"| {label} (nak{', cpu size' if arch in SIZED else ''}) | " + " | ".join(cells) + " |")
+        if with_paper and arch in PAPER:
             paper = [f"{PAPER[arch][trained][i]:.2f}" for trained, _, _ in COLUMNS for i in range(3)]
             lines.append(f"| {label} (paper, GPU) | " + " | ".join(paper) + " |")
     for name, metrics in baselines.items():
@@ -112,7 +122,7 @@ def table(entries: list[Entry], key: str, baselines: dict[str, dict[str, Any]], 
 
 
 def figure(entries: list[Entry], baselines: dict[str, dict[str, Any]], path: Path) -> None:
-    markers = {"pointnet": "o", "deepset": "s", "isab": "^"}
+    markers = {"pointnet": "o", "deepset": "s", "isab": "^", "pod": "D", "deeponet": "P"}
     colours = {"base": "#9e9e9e", "res": "#1f77b4", "reg": "#d62728"}
     fig, ax = plt.subplots(figsize=(7.5, 5))
     for e in entries:
@@ -129,18 +139,57 @@ def figure(entries: list[Entry], baselines: dict[str, dict[str, Any]], path: Pat
             ax.scatter(x, y, marker="*", s=160, color="#2ca02c", edgecolors="black")
             ax.annotate(name, (x, y), textcoords="offset points", xytext=(6, -3), fontsize=7)
     for arch, marker in markers.items():
-        ax.scatter([], [], marker=marker, color="white", edgecolors="black", label=ARCHITECTURES[arch])
+        if any(e.architecture == arch for e in entries):
+            ax.scatter([], [], marker=marker, color="white", edgecolors="black", label=ARCHITECTURES[arch])
     for method, colour in colours.items():
         ax.scatter([], [], marker="o", color=colour, label=METHOD_LABEL[method])
     ax.set_xscale("log")
-    ax.set_xlabel("engine time per request, p50 (ms, log scale; 2 vCPUs, one request at a time)")
-    ax.set_ylabel("DCM, code form (%), linear test split, all samples")
-    ax.set_title("nak on the phantom liver: accuracy against served time (cf. the paper's Fig. 2)")
+    labels = (
+        "engine time per request, p50 (ms, log scale; 2 vCPUs, one request at a time)",
+        "DCM, code form (%), linear test split, all samples",
+        "nak on the phantom liver: accuracy against served time (cf. the paper's Fig. 2)",
+    )
+    save(fig, ax, path, labels, legend_size=8)
+
+
+def save(fig: Any, ax: Any, path: Path, labels: tuple[str, str, str], legend_size: int) -> None:
+    """Axis labels and title, grid, legend, and the PNG."""
+    ax.set_xlabel(labels[0])
+    ax.set_ylabel(labels[1])
+    ax.set_title(labels[2])
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8, loc="lower right")
+    ax.legend(fontsize=legend_size, loc="lower right")
     fig.tight_layout()
     fig.savefig(path, dpi=130)
     plt.close(fig)
+
+
+def ceiling_figure(entries: list[Entry], path: Path) -> list[str]:
+    """The POD bases' own ceiling against M (figure and table lines); empty without a POD model."""
+    curves = {}
+    for e in entries:
+        points = {int(k[len(CEILING_PREFIX) :]): v for k, v in e.metrics.items() if k.startswith(CEILING_PREFIX)}
+        if points:
+            curves[e.name] = dict(sorted(points.items()))
+    if not curves:
+        return []
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    for name, points in curves.items():
+        ax.plot(list(points), list(points.values()), marker="o", label=f"{name}: best M-term approximation")
+        served = next(e for e in entries if e.name == name).metrics["dcm_combined"]
+        ax.axhline(served, linestyle="--", linewidth=1, color=ax.lines[-1].get_color(), label=f"{name} served")
+    ax.set_xscale("log", base=2)
+    labels = (
+        "modes M",
+        "DCM (%), volume form, test split, all samples",
+        "What a POD basis of M modes can represent at best",
+    )
+    save(fig, ax, path, labels, legend_size=7)
+    modes = sorted({m for points in curves.values() for m in points})
+    lines = ["| basis | " + " | ".join(f"M = {m}" for m in modes) + " |", "|---" * (1 + len(modes)) + "|"]
+    for name, points in curves.items():
+        lines.append(f"| `{name}` | " + " | ".join(f"{points[m]:.2f}" if m in points else "–" for m in modes) + " |")
+    return lines
 
 
 def write_report(data: Path, models: list[Path], nak: Path, mesh: Path, out: Path) -> None:
@@ -152,6 +201,7 @@ def write_report(data: Path, models: list[Path], nak: Path, mesh: Path, out: Pat
     baselines["green-linear (exact linear FEM)"] = baseline(nak, data, mesh, "green-linear")
     out.mkdir(parents=True, exist_ok=True)
     figure(entries, baselines, out / "accuracy-latency.png")
+    ceiling = ceiling_figure(entries, out / "basis-ceiling.png")
     rows = [
         "| model | method | trained on | ε (cm) | DCM single | DCM multi | DCM all | code form all | "
         "network ms p50 | total ms p50 |",
@@ -196,5 +246,18 @@ def write_report(data: Path, models: list[Path], nak: Path, mesh: Path, out: Pat
         "![DCM against the engine's time per request](models/accuracy-latency.png)",
         "",
     ]
+    if ceiling:
+        text += [
+            "## The reduced bases' ceiling",
+            "",
+            "DCM (volume form) of the best M-term approximation of each test target by the POD basis",
+            "(for +Res the residual u_true − prior, scored against u_true, so it is the served field's best):",
+            "what any encoder over that basis can reach. Dashed: what the trained encoder reaches.",
+            "",
+            *ceiling,
+            "",
+            "![POD ceiling against M](models/basis-ceiling.png)",
+            "",
+        ]
     (out.parent / "models.md").write_text("\n".join(text))
     print(f"wrote {out.parent / 'models.md'} and {out / 'accuracy-latency.png'}")
