@@ -166,18 +166,23 @@ def save(fig: Any, ax: Any, path: Path, labels: tuple[str, str, str], legend_siz
 
 def ceiling_figure(entries: list[Entry], path: Path) -> list[str]:
     """The POD bases' own ceiling against M (figure and table lines); empty without a POD model."""
-    curves = {}
+    curves: dict[str, dict[int, float]] = {}
     for e in entries:
         points = {int(k[len(CEILING_PREFIX) :]): v for k, v in e.metrics.items() if k.startswith(CEILING_PREFIX)}
         if points:
             curves[e.name] = dict(sorted(points.items()))
+    served = {name: next(e for e in entries if e.name == name).metrics["dcm_combined"] for name in curves}
+    # Models sharing a basis (the same POD truncated to their M) draw one curve.
+    for name in list(curves):
+        if any(curves[other] == curves[name] for other in curves if other < name):
+            del curves[name]
     if not curves:
         return []
     fig, ax = plt.subplots(figsize=(6.5, 4))
     for name, points in curves.items():
         ax.plot(list(points), list(points.values()), marker="o", label=f"{name}: best M-term approximation")
-        served = next(e for e in entries if e.name == name).metrics["dcm_combined"]
-        ax.axhline(served, linestyle="--", linewidth=1, color=ax.lines[-1].get_color(), label=f"{name} served")
+    for (name, dcm), style in zip(served.items(), ("--", ":", "-."), strict=False):
+        ax.axhline(dcm, linestyle=style, linewidth=1, color="grey", label=f"{name} served ({dcm:.1f} %)")
     ax.set_xscale("log", base=2)
     labels = (
         "modes M",
@@ -252,7 +257,7 @@ def write_report(data: Path, models: list[Path], nak: Path, mesh: Path, out: Pat
             "",
             "DCM (volume form) of the best M-term approximation of each test target by the POD basis",
             "(for +Res the residual u_true − prior, scored against u_true, so it is the served field's best):",
-            "what any encoder over that basis can reach. Dashed: what the trained encoder reaches.",
+            "what any encoder over that basis can reach. Grey lines: what the trained encoders reach.",
             "",
             *ceiling,
             "",
