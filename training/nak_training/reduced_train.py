@@ -48,6 +48,7 @@ class ReducedTrainer(Run):
         self.val_targets = self._targets(self.val, "val")
         self.train_norm = squared_norms(self.train.fields, self.mesh.nodal_volumes).float()
         self.val_norm = squared_norms(self.val.fields, self.mesh.nodal_volumes).float()
+        self.mean_norm = self.train_norm.mean()
         self.train_points, self.train_mask = interaction_batch(self.mesh.positions, self.train)
         self.val_points, self.val_mask = interaction_batch(self.mesh.positions, self.val)
         net = ReducedNet(config.architecture, config.modes, config.width, config.encoder)
@@ -117,7 +118,7 @@ class ReducedTrainer(Run):
             query = torch.randperm(self.mesh.node_count, generator=self.generator)[: c.query_nodes]
             target = self.train_targets[picks[:, None], query[None, :]]
             truth = self.train.fields[picks[:, None], query[None, :]]
-            loss = self._field_error(g, query, target, truth).mean()
+            loss = self._field_error(g, query, target, (truth**2).sum(-1) @ self.volumes[query]).mean()
         if self.q is not None:
             loss = loss + c.lambda_reg * self._regularization()
         for group in self.optimizer.param_groups:
@@ -133,18 +134,21 @@ class ReducedTrainer(Run):
         return (((g - target) ** 2).sum(1) + missed.float()).sqrt() / norm.sqrt()
 
     def _field_error(
-        self, g: torch.Tensor, query: torch.Tensor, target: torch.Tensor, truth: torch.Tensor
+        self, g: torch.Tensor, query: torch.Tensor, target: torch.Tensor, norm: torch.Tensor
     ) -> torch.Tensor:
-        """The same ratio estimated on the `query` nodes (DeepONet, whose Φ changes every step)."""
+        """The same ratio estimated on the `query` nodes (DeepONet, whose Φ changes every step), for
+        the squared norms `norm` [B] measured on those nodes."""
         assert self.model.trunk is not None
         phi = self.model.trunk(self.positions[query])  # [Q, 3, M]
         estimate = torch.einsum("qkm,bm->bqk", phi, g)
         v = self.volumes[query]
         error = ((estimate - target) ** 2).sum(-1) @ v
-        return (error / ((truth**2).sum(-1) @ v).clamp_min(1e-30) + 1e-12).sqrt()
+        return (error / norm.clamp_min(1e-30) + 1e-12).sqrt()
 
     def _regularization(self) -> torch.Tensor:
-        """Relative misfit of the direct field to the Kelvinlet field on fresh q samples."""
+        """Misfit of the direct field to the Kelvinlet field on fresh q samples, relative to the train
+        fields' mean norm (not each Kelvinlet field's own: a localized Kelvinlet field is far smaller
+        than the FEM field of a similar grasp, and dividing by it lets the regularizer swamp the data)."""
         assert self.q is not None
         nodes, displacements = self.q.draw(self.config.q_batch)
         _, points, disp, mask = pad_points(self.mesh.positions, nodes, displacements)
@@ -153,10 +157,11 @@ class ReducedTrainer(Run):
         if self.basis is not None:
             kelvinlet = self.prior.evaluate(self.mesh.positions, points, disp, mask).float()
             p = project(kelvinlet, self.basis, self.mesh.nodal_volumes)
-            return self._coefficient_error(g, p["g"], p["missed"], p["norm"].float()).mean()
+            return self._coefficient_error(g, p["g"], p["missed"], self.mean_norm.expand(len(g))).mean()
         query = torch.randperm(self.mesh.node_count, generator=self.generator)[: self.config.query_nodes]
         kelvinlet = self.prior.evaluate(self.mesh.positions[query], points, disp, mask).float()
-        return self._field_error(g, query, kelvinlet, kelvinlet).mean()
+        share = self.volumes[query].sum() / self.volumes.sum()
+        return self._field_error(g, query, kelvinlet, (self.mean_norm * share).expand(len(g))).mean()
 
     # -- validation -----------------------------------------------------------------------------
 
