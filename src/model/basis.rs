@@ -1,11 +1,11 @@
 //! A reduced basis Φ beside a graph whose output is `coefficients` g (DESIGN.md §7, `interaction`
 //! form): the network's field is Φ g, multiplied here rather than in ONNX Runtime.
 //!
-//! `basis.safetensors` holds one tensor `basis`, f32 or f16, shaped [N, 3, M] — node-major, so a
-//! node's three rows are 3·M contiguous values and any subset of nodes (a surface or a listed
-//! selection) costs only its own rows — and the metadata key `mesh_hash`, the content hash of the
-//! mesh it was made on. The whole-mesh product streams 9,701 × 3 × 64 values (7.4 MB in f32, 3.7 MB
-//! in f16) through the cache, so f16 storage can halve its time; accumulation is f32 either way.
+//! `basis.safetensors` holds one tensor `basis`, f32 or f16, shaped [N, 3, M] (node-major), and the
+//! metadata key `mesh_hash`, the content hash of the mesh it was made on. In memory the values are
+//! rearranged into tiles (see [`TILE`]). f16 halves the bytes; on a machine whose cache holds the f32
+//! basis (9,701 × 3 × 64 values, 7.4 MB) widening costs more than that saves (README, Performance).
+//! Accumulation is f32 either way.
 
 use multiversion::multiversion;
 use rayon::prelude::*;
@@ -209,22 +209,15 @@ impl Basis {
     /// Φ's rows [n, 3, M] in f32 for `nodes` (every node in order if `None`), e.g. to upload them to
     /// a GPU.
     pub fn rows_f32(&self, nodes: Option<&[u32]>) -> Vec<f32> {
-        let row = 3 * self.modes;
-        let all: Vec<u32>;
-        let nodes = match nodes {
-            Some(nodes) => nodes,
-            None => {
-                all = (0..self.nodes as u32).collect();
-                &all
-            }
+        let node_ids: Box<dyn Iterator<Item = usize>> = match nodes {
+            Some(nodes) => Box::new(nodes.iter().map(|&n| n as usize)),
+            None => Box::new(0..self.nodes),
         };
-        let mut out = Vec::with_capacity(nodes.len() * row);
-        for &n in nodes {
-            for c in 0..3 {
-                out.extend((0..self.modes).map(|m| self.value(tiled(n as usize, c, m, self.modes))));
-            }
-        }
-        out
+        node_ids
+            .flat_map(|n| {
+                (0..3).flat_map(move |c| (0..self.modes).map(move |m| self.value(tiled(n, c, m, self.modes))))
+            })
+            .collect()
     }
 }
 
@@ -237,14 +230,8 @@ impl Basis {
 ))]
 fn add_tile_f32(tile: &[f32], g: &[f32], out: &mut [f32]) {
     let mut acc = [0.0f32; TILE_ROWS];
-    for (column, &gm) in tile.chunks_exact(TILE_ROWS).zip(g) {
-        for r in 0..TILE_ROWS {
-            acc[r] += gm * column[r];
-        }
-    }
-    for (o, a) in out.iter_mut().zip(acc) {
-        *o += a;
-    }
+    accumulate(tile, g, &mut acc);
+    add_rows(&acc, out);
 }
 
 /// [`add_tile_f32`] over f16 bits: a few modes at a time are widened into an f32 scratch (a plain
@@ -262,12 +249,24 @@ fn add_tile_f16(tile: &[u16], g: &[f32], out: &mut [f32]) {
         for (w, &bits) in wide.iter_mut().zip(chunk) {
             *w = widen(bits);
         }
-        for (column, &gm) in wide.chunks_exact(TILE_ROWS).zip(gs) {
-            for r in 0..TILE_ROWS {
-                acc[r] += gm * column[r];
-            }
+        accumulate(&wide, gs, &mut acc);
+    }
+    add_rows(&acc, out);
+}
+
+/// `acc[r] += Σ_m g[m] · columns[m, r]` over columns of TILE_ROWS values (inlined into the
+/// multiversioned callers, so it is compiled for their CPU features).
+#[inline(always)]
+fn accumulate(columns: &[f32], g: &[f32], acc: &mut [f32; TILE_ROWS]) {
+    for (column, &gm) in columns.chunks_exact(TILE_ROWS).zip(g) {
+        for r in 0..TILE_ROWS {
+            acc[r] += gm * column[r];
         }
     }
+}
+
+#[inline(always)]
+fn add_rows(acc: &[f32; TILE_ROWS], out: &mut [f32]) {
     for (o, a) in out.iter_mut().zip(acc) {
         *o += a;
     }

@@ -14,7 +14,7 @@ use ort::value::TensorRef;
 use super::ModelLoadError;
 use super::basis::{self, Basis};
 use super::manifest::{Manifest, Mode};
-use super::signature::{self, COEFFICIENTS, DISPLACEMENT, FEATURES, INTERACTION, Input, Output, Signature};
+use super::signature::{self, COEFFICIENTS, DISPLACEMENT, Input, Output, Signature};
 use crate::engine::{DeformationModel, ModelError, ModelInfo, ModelKind, StageTiming, Target};
 use crate::mesh::TetMesh;
 use crate::prior::gpu::{GpuBasis, GpuError, GpuPrior};
@@ -49,6 +49,8 @@ pub struct OnnxModel {
     signature: Signature,
     /// Φ for graphs whose output is `coefficients`.
     basis: Option<Basis>,
+    /// The output the graph must give for one request, and its shape.
+    output: (&'static str, Vec<i64>),
     /// Φ on the GPU the engine's clouds live on, once the engine attached one.
     gpu_basis: OnceLock<GpuBasis>,
     reads_prior: bool,
@@ -127,15 +129,15 @@ impl OnnxModel {
                 format!(
                     "model.inputs = {:?} does not match the graph, whose input is {:?}",
                     manifest.model.inputs,
-                    if signature.input == Input::Features {
-                        FEATURES
-                    } else {
-                        INTERACTION
-                    }
+                    signature.input.name()
                 ),
             ));
         }
         let basis = load_basis(origin, files.basis, signature.output, mesh)?;
+        let output = match &basis {
+            Some(basis) => (COEFFICIENTS, vec![1, basis.modes() as i64]),
+            None => (DISPLACEMENT, vec![1, n as i64, 3]),
+        };
 
         let template = match signature.input {
             Input::Features => {
@@ -178,6 +180,7 @@ impl OnnxModel {
             mode: manifest.model.mode,
             signature,
             basis,
+            output,
             gpu_basis: OnceLock::new(),
             reads_prior: manifest.reads_prior(),
             channels,
@@ -270,9 +273,10 @@ impl OnnxModel {
         k: usize,
         consume: impl FnOnce(&[f32]) -> Result<(), ModelError>,
     ) -> Result<(), ModelError> {
-        let (name, shape) = match self.signature.input {
-            Input::Features => (FEATURES, [1usize, self.node_count, self.channels]),
-            Input::Interaction => (INTERACTION, [1usize, k, signature::INTERACTION_WIDTH]),
+        let name = self.signature.input.name();
+        let shape = match self.signature.input {
+            Input::Features => [1usize, self.node_count, self.channels],
+            Input::Interaction => [1usize, k, signature::INTERACTION_WIDTH],
         };
         let tensor = TensorRef::from_array_view((shape, input))
             .map_err(|e| ModelError::Runtime(format!("cannot wrap the {name} input: {e}")))?;
@@ -283,11 +287,8 @@ impl OnnxModel {
         let outputs = session
             .run(ort::inputs![name => tensor])
             .map_err(|e| ModelError::Runtime(e.to_string()))?;
-        let (output, expected) = match (self.signature.output, &self.basis) {
-            (Output::Coefficients { .. }, Some(basis)) => (COEFFICIENTS, vec![1, basis.modes() as i64]),
-            _ => (DISPLACEMENT, vec![1, self.node_count as i64, 3]),
-        };
-        let (shape, values) = outputs[output]
+        let (output, expected) = &self.output;
+        let (shape, values) = outputs[*output]
             .try_extract_tensor::<f32>()
             .map_err(|e| ModelError::Runtime(format!("output {output}: {e}")))?;
         if shape[..] != expected[..] {
@@ -368,12 +369,12 @@ impl DeformationModel for OnnxModel {
     }
 
     fn attach_gpu(&self, gpu: &Arc<GpuPrior>, clouds: &[Option<&[u32]>]) -> Result<(), GpuError> {
-        let Some(basis) = &self.basis else {
+        // Attached once: a second engine attaching the same model keeps the first upload.
+        let (Some(basis), None) = (&self.basis, self.gpu_basis.get()) else {
             return Ok(());
         };
         let rows = clouds.iter().map(|nodes| basis.rows_f32(*nodes)).collect();
         let resident = gpu.upload_basis(rows, basis.modes())?;
-        // Attached once: a second engine attaching the same model keeps the first upload.
         let _ = self.gpu_basis.set(resident);
         Ok(())
     }
@@ -475,7 +476,7 @@ impl OnnxModel {
     }
 
     /// The interaction form: the network sees only the K points; the field is its output, or Φ g.
-    /// The prior (residual mode) is written first and the network's share added to it.
+    /// In residual mode the network runs beside the prior and its share is added once both are done.
     fn predict_interaction(
         &self,
         points: &InteractionPoints,
@@ -489,7 +490,7 @@ impl OnnxModel {
             && let Some(resident) = target.cloud.resident()
             && gpu_basis.lives_on(&resident.gpu)
         {
-            match self.predict_on_gpu(points, target, workspace, buffers, out, timing, gpu_basis) {
+            match self.predict_on_gpu(points, resident.cloud, workspace, buffers, out, timing, gpu_basis) {
                 Ok(()) => return Ok(()),
                 // The answer is still owed: the CPU gives the same field, a little later.
                 Err(e) => tracing::warn!(model = %self.info.name, "GPU failed, this request runs on the CPU: {e}"),
@@ -497,20 +498,8 @@ impl OnnxModel {
         }
         // The encoder (ONNX Runtime, one thread) runs beside the prior (the rayon pool); the network's
         // share is added once both are done, while the pool's threads are still awake.
-        let mut output = std::mem::take(&mut buffers.network);
-        let input = &mut buffers.input;
+        let Buffers { input, network, .. } = buffers;
         let mut encoder_us = 0.0;
-        let mut encode = |output: &mut Vec<f32>, encoder_us: &mut f32| {
-            let start = Instant::now();
-            fill_interaction(points, input);
-            let result = self.run_network(input, points.len(), |values| {
-                output.clear();
-                output.extend_from_slice(values);
-                Ok(())
-            });
-            *encoder_us = start.elapsed().as_secs_f32() * 1e6;
-            result
-        };
         let (prior, encoded) = match self.mode {
             Mode::Residual => rayon::join(
                 || {
@@ -521,11 +510,11 @@ impl OnnxModel {
                     timing.prior_us = start.elapsed().as_secs_f32() * 1e6;
                     result
                 },
-                || encode(&mut output, &mut encoder_us),
+                || self.encode(points, input, network, &mut encoder_us),
             ),
             Mode::Direct => {
                 out.fill(0.0);
-                (Ok(()), encode(&mut output, &mut encoder_us))
+                (Ok(()), self.encode(points, input, network, &mut encoder_us))
             }
         };
         let start = Instant::now();
@@ -533,37 +522,48 @@ impl OnnxModel {
             .map_err(ModelError::from)
             .and(encoded)
             .map(|()| match &self.basis {
-                Some(basis) => basis.add_product(&output, target.nodes, out),
-                None => gather(&output, target, out, true),
+                Some(basis) => basis.add_product(network, target.nodes, out),
+                None => gather(network, target, out, true),
             });
         timing.network_us = encoder_us + start.elapsed().as_secs_f32() * 1e6;
-        buffers.network = output;
+        result
+    }
+
+    /// Runs an interaction graph on `points` and copies its output (g, or the whole field) into
+    /// `output`, timing it into `elapsed_us`.
+    fn encode(
+        &self,
+        points: &InteractionPoints,
+        input: &mut Vec<f32>,
+        output: &mut Vec<f32>,
+        elapsed_us: &mut f32,
+    ) -> Result<(), ModelError> {
+        let start = Instant::now();
+        fill_interaction(points, input);
+        let result = self.run_network(input, points.len(), |values| {
+            output.clear();
+            output.extend_from_slice(values);
+            Ok(())
+        });
+        *elapsed_us = start.elapsed().as_secs_f32() * 1e6;
         result
     }
 
     /// The interaction form with Φ on the GPU: the network gives g on the CPU, then one dispatch
-    /// evaluates prior and residual together, `Σ_j Γ_j k_j + Φ g` (DESIGN.md §7). `prior_us` is the
-    /// solve and that dispatch; `network_us` the encoder.
+    /// evaluates prior and residual together over resident cloud `cloud`, `Σ_j Γ_j k_j + Φ g`
+    /// (DESIGN.md §7). `prior_us` is the solve and that dispatch; `network_us` the encoder.
     #[allow(clippy::too_many_arguments)]
     fn predict_on_gpu(
         &self,
         points: &InteractionPoints,
-        target: Target<'_>,
+        cloud: usize,
         workspace: &mut Workspace,
         buffers: &mut Buffers,
         out: &mut [f32],
         timing: &mut StageTiming,
         basis: &GpuBasis,
     ) -> Result<(), ModelError> {
-        let start = Instant::now();
-        fill_interaction(points, &mut buffers.input);
-        let mut g = std::mem::take(&mut buffers.network);
-        self.run_network(&buffers.input, points.len(), |values| {
-            g.clear();
-            g.extend_from_slice(values);
-            Ok(())
-        })?;
-        timing.network_us = start.elapsed().as_secs_f32() * 1e6;
+        self.encode(points, &mut buffers.input, &mut buffers.network, &mut timing.network_us)?;
         let start = Instant::now();
         let empty = Coefficients::default();
         let coefficients = match self.mode {
@@ -573,12 +573,10 @@ impl OnnxModel {
             }
             Mode::Direct => &empty,
         };
-        let cloud = target.cloud.resident().map_or(0, |r| r.cloud);
         let result = basis
             .gpu()
-            .evaluate_with_basis(&self.prior, cloud, coefficients, basis, &g, out)
+            .evaluate_with_basis(&self.prior, cloud, coefficients, basis, &buffers.network, out)
             .map_err(|e| ModelError::Runtime(e.to_string()));
-        buffers.network = g;
         timing.prior_us = start.elapsed().as_secs_f32() * 1e6;
         result
     }

@@ -21,6 +21,16 @@ pub enum Input {
     Interaction,
 }
 
+impl Input {
+    /// The input's name in the graph.
+    pub fn name(self) -> &'static str {
+        match self {
+            Input::Features => FEATURES,
+            Input::Interaction => INTERACTION,
+        }
+    }
+}
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Output {
     /// `displacement` f32 [B, N, 3].
@@ -39,21 +49,13 @@ pub struct Signature {
 /// one output (`displacement` [B, N, 3], or `coefficients` [B, M] after `interaction`), f32, with B
 /// either 1 or symbolic.
 pub fn read(session: &Session, channels: usize, n: usize, origin: &str) -> Result<Signature, ModelLoadError> {
-    let [input] = session.inputs() else {
-        return Err(ModelLoadError::new(
-            origin,
-            format!(
-                "expected one input, {FEATURES:?} or {INTERACTION:?}; found: {}",
-                describe(session.inputs())
-            ),
-        ));
-    };
+    let input = single(session.inputs(), "input", [FEATURES, INTERACTION], origin)?;
     let input = match input.name() {
         FEATURES => {
             check_shape(input, "input", &[Some(n), Some(channels)], "[batch, N, C]", origin)?;
             Input::Features
         }
-        INTERACTION => {
+        _ => {
             let shape = check_shape(
                 input,
                 "input",
@@ -72,49 +74,48 @@ pub fn read(session: &Session, channels: usize, n: usize, origin: &str) -> Resul
             }
             Input::Interaction
         }
-        other => {
-            return Err(ModelLoadError::new(
-                origin,
-                format!("the input is named {other:?}; the model contract names it {FEATURES:?} or {INTERACTION:?}"),
-            ));
-        }
     };
-    let [output] = session.outputs() else {
-        return Err(ModelLoadError::new(
-            origin,
-            format!(
-                "expected one output, {DISPLACEMENT:?} or {COEFFICIENTS:?}; found: {}",
-                describe(session.outputs())
-            ),
-        ));
-    };
+    let output = single(session.outputs(), "output", [DISPLACEMENT, COEFFICIENTS], origin)?;
     let output = match (output.name(), input) {
         (DISPLACEMENT, _) => {
             check_shape(output, "output", &[Some(n), Some(3)], "[batch, N, 3]", origin)?;
             Output::Displacement
         }
-        (COEFFICIENTS, Input::Interaction) => {
+        (_, Input::Interaction) => {
             let shape = check_shape(output, "output", &[None], "[batch, M]", origin)?;
             Output::Coefficients {
                 modes: usize::try_from(shape[1]).ok(),
             }
         }
-        (COEFFICIENTS, Input::Features) => {
+        (_, Input::Features) => {
             return Err(ModelLoadError::new(
                 origin,
                 format!("output {COEFFICIENTS:?} needs input {INTERACTION:?}; this graph reads {FEATURES:?}"),
             ));
         }
-        (other, _) => {
-            return Err(ModelLoadError::new(
-                origin,
-                format!(
-                    "the output is named {other:?}; the model contract names it {DISPLACEMENT:?} or {COEFFICIENTS:?}"
-                ),
-            ));
-        }
     };
     Ok(Signature { input, output })
+}
+
+/// The one input (or output, as `role` says) of a graph, named one of `names`.
+fn single<'a>(outlets: &'a [Outlet], role: &str, names: [&str; 2], origin: &str) -> Result<&'a Outlet, ModelLoadError> {
+    let [a, b] = names;
+    let [outlet] = outlets else {
+        return Err(ModelLoadError::new(
+            origin,
+            format!("expected one {role}, {a:?} or {b:?}; found: {}", describe(outlets)),
+        ));
+    };
+    if !names.contains(&outlet.name()) {
+        return Err(ModelLoadError::new(
+            origin,
+            format!(
+                "the {role} is named {:?}; the model contract names it {a:?} or {b:?}",
+                outlet.name()
+            ),
+        ));
+    }
+    Ok(outlet)
 }
 
 /// Checks that `outlet` (an input or output, as `role` says) is f32 [batch, dims...] where each

@@ -121,12 +121,7 @@ class ReducedTrainer(Run):
             loss = self._field_error(g, query, target, (truth**2).sum(-1) @ self.volumes[query]).mean()
         if self.q is not None:
             loss = loss + c.lambda_reg * self._regularization()
-        for group in self.optimizer.param_groups:
-            group["lr"] = self._learning_rate()
-        self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        self.optimizer.step()
-        return float(loss.detach())
+        return self._descend(loss)
 
     @staticmethod
     def _coefficient_error(g: torch.Tensor, target: torch.Tensor, missed: Any, norm: torch.Tensor) -> torch.Tensor:

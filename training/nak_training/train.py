@@ -136,6 +136,15 @@ class Run:
     def _step(self) -> float:
         raise NotImplementedError
 
+    def _descend(self, loss: torch.Tensor) -> float:
+        """One optimizer step on `loss` at the schedule's learning rate; returns the loss."""
+        for group in self.optimizer.param_groups:
+            group["lr"] = self._learning_rate()
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        return float(loss.detach())
+
     def validate(self) -> float:
         raise NotImplementedError
 
@@ -322,12 +331,7 @@ class Trainer(Run):
         loss = self._misfit(prediction[: c.batch], target, query) + STN_PENALTY * penalty
         if self.q is not None:
             loss = loss + c.lambda_reg * self._misfit(prediction[c.batch :], kelvinlet, query)
-        for group in self.optimizer.param_groups:
-            group["lr"] = self._learning_rate()
-        self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        self.optimizer.step()
-        return float(loss.detach())
+        return self._descend(loss)
 
     @torch.no_grad()
     def validate(self, batch: int = 8) -> float:
