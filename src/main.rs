@@ -375,20 +375,7 @@ fn predict(args: PredictArgs) -> anyhow::Result<()> {
     let grasps = cli::predict::read_grasps(&args.grasps)?;
     let prediction = cli::predict::run(&engine, &args.model, grasps, args.surface_only)?;
     cli::predict::write_npy(&args.out, &prediction.displacements)?;
-    let largest = prediction
-        .displacements
-        .chunks(3)
-        .map(|u| (u[0] * u[0] + u[1] * u[1] + u[2] * u[2]).sqrt())
-        .fold(0.0f32, f32::max);
-    println!(
-        "{}: {} nodes, {} interaction points, largest displacement {:.2} mm, {:.0} µs → {}",
-        prediction.model,
-        prediction.displacements.len() / 3,
-        prediction.interaction_points,
-        largest * 1e3,
-        prediction.timing.total_us,
-        args.out.display()
-    );
+    print!("{}", cli::predict::summary(&prediction, &args.out));
     Ok(())
 }
 

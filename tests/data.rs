@@ -125,10 +125,19 @@ fn eval_scores_the_exact_model_at_100_and_writes_json() {
         let combined = &report["subsets"]["combined"];
         assert_eq!(combined["samples"], 20);
         let dcm = combined["dcm"].as_f64().unwrap();
+        let forces = &report["grasp_forces"]["combined"];
+        // 12 single-grasper and 8 two-grasper samples.
+        assert_eq!(forces["grasps"], 28, "{report}");
+        let force_error = forces["mean_relative_error"].as_f64().unwrap();
         if model == "green-linear" {
             assert!(dcm > 99.999, "{dcm}");
+            assert!(force_error < 1e-6, "{force_error}");
         } else {
             assert!(dcm < 99.0, "the prior is not the FEM answer: {dcm}");
+            assert!(
+                force_error > 0.01,
+                "the Kelvinlet's forces are an estimate: {force_error}"
+            );
         }
         assert!(report["subsets"]["single"]["samples"] == 12 && report["subsets"]["multi"]["samples"] == 8);
     }
@@ -200,10 +209,19 @@ fn nonlinear_datagen_is_deterministic_resumable_and_shares_grasps_with_linear() 
     assert_eq!(nonlinear_samples.len(), 6);
     for ((n, n_field), (l, l_field)) in nonlinear_samples.iter().zip(&linear_samples) {
         assert_eq!(
-            n.grasps, l.grasps,
+            n.grasps(),
+            l.grasps(),
             "sample {} draws the same grasps in both regimes",
             n.index
         );
+        // Both store the force of each grasp. The paper's Mooney–Rivlin liver is stiffer than its
+        // linear one (small-strain μ0 = 2(C10 + C01) = 7.18 kPa against 0.69 kPa): the nonlinear force
+        // is about μ0/μ times the linear one, give or take what large strains and gravity change.
+        for (nf, lf) in n.forces().unwrap().iter().zip(l.forces().unwrap()) {
+            let size = |f: &[f64; 3]| f.iter().map(|v| v * v).sum::<f64>().sqrt();
+            let ratio = size(nf) / size(&lf) / (7.18 / 0.69);
+            assert!((0.3..3.0).contains(&ratio), "nonlinear {nf:?}, linear {lf:?}");
+        }
         let solver = n.solver.as_ref().unwrap();
         assert!(solver.failure.is_none() && solver.stats.load_steps >= 1 && solver.stats.newton_iterations >= 1);
         // Relative to the preloaded state, grasped nodes move exactly as prescribed.

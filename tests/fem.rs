@@ -160,7 +160,7 @@ fn a_cantilever_converges_to_beam_theory_under_refinement() {
 }
 
 #[test]
-fn green_linear_equals_a_direct_solve_and_moves_grasped_nodes_exactly() {
+fn green_linear_equals_a_direct_solve_moves_grasped_nodes_exactly_and_gives_its_forces() {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/phantom-liver/liver-coarse.msh");
     let m = mesh::load(&MeshSource::File(path)).unwrap();
     let cache = tempfile::tempdir().unwrap();
@@ -172,7 +172,8 @@ fn green_linear_equals_a_direct_solve_and_moves_grasped_nodes_exactly() {
         }
     }
     let mut served = vec![0.0f32; 3 * m.node_count()];
-    green.solve(&points, None, &mut served).unwrap();
+    let mut forces = Vec::new();
+    green.solve(&points, None, &mut served, &mut forces).unwrap();
     let prescribed: Vec<(u32, [f64; 3])> = points
         .nodes
         .iter()
@@ -196,6 +197,37 @@ fn green_linear_equals_a_direct_solve_and_moves_grasped_nodes_exactly() {
             );
         }
     }
+    // The capacitance forces (G[S,S])⁻¹ u_S are K·u of the direct solve at the held nodes. G is
+    // cached in f32, so they agree to about f32 precision times G[S,S]'s conditioning.
+    let reference = nak::fem::nodal_forces(&m, &direct, &points.nodes).unwrap();
+    let scale = reference.iter().flatten().map(|f| f * f).sum::<f64>().sqrt();
+    let error = forces
+        .iter()
+        .flatten()
+        .zip(reference.iter().flatten())
+        .map(|(a, b)| (a - b).powi(2))
+        .sum::<f64>()
+        .sqrt();
+    assert!(error / scale < 1e-6, "forces differ by {:e} relative", error / scale);
+    // K·u itself: free nodes carry no force, and the held and fixed nodes' forces balance.
+    let everything: Vec<u32> = (0..m.node_count() as u32).collect();
+    let all = nak::fem::nodal_forces(&m, &direct, &everything).unwrap();
+    let held: std::collections::HashSet<u32> = points
+        .nodes
+        .iter()
+        .copied()
+        .chain(m.node_sets["fixed"].iter().copied())
+        .collect();
+    let free_largest = (0..m.node_count())
+        .filter(|n| !held.contains(&(*n as u32)))
+        .map(|n| all[n].iter().map(|f| f * f).sum::<f64>().sqrt())
+        .fold(0.0, f64::max);
+    assert!(free_largest < 1e-9 * scale, "a free node carries {free_largest:e} N");
+    let total: Vec<f64> = (0..3).map(|k| all.iter().map(|f| f[k]).sum::<f64>()).collect();
+    assert!(
+        total.iter().all(|t| t.abs() < 1e-9 * scale),
+        "K·u does not balance: {total:?}"
+    );
     // A second load reads the cache instead of recomputing.
     let again = GreenLinear::load_or_compute(&m, cache.path(), |_, _| panic!("recomputed")).unwrap();
     assert_eq!(again.candidates(), green.candidates());

@@ -237,3 +237,97 @@ fn the_phantom_field_is_identical_serially_and_in_parallel() {
     let serial = pool.install(|| field(&prior, &points, &fine.positions));
     assert_eq!(parallel, serial);
 }
+
+/// Kelvin's singular solution: displacement at offset `r` from a point load `f` in an infinite
+/// medium, `u = [(3−4ν) f + r̂ (r̂·f)] / (16πμ(1−ν)|r|)`.
+fn kelvin(mu: f64, nu: f64, r: Vector3<f64>, f: Vector3<f64>) -> Vector3<f64> {
+    let d = r.norm();
+    let hat = r / d;
+    ((3.0 - 4.0 * nu) * f + hat * hat.dot(&f)) / (16.0 * std::f64::consts::PI * mu * (1.0 - nu) * d)
+}
+
+#[test]
+fn the_kelvinlet_force_is_the_point_load_whose_far_field_is_kelvins_solution() {
+    use nak::engine::{Engine, Forces, Grasp, Limits, Request};
+    let m = std::sync::Arc::new(coarse());
+    let engine = Engine::new(m.clone(), Limits::default());
+    let kelvinlet = engine.models().find(|i| i.name == "kelvinlet").unwrap();
+    assert_eq!(kelvinlet.forces, Forces::Estimate);
+    // A node inside the liver region, so that μ is the liver's.
+    let liver = m.regions.iter().position(|r| r.name == "liver").unwrap() as u16;
+    let node = m.node_sets["grasp_05"]
+        .iter()
+        .copied()
+        .find(|&n| m.node_region[n as usize] == Some(liver))
+        .unwrap();
+    let u = [0.01, -0.02, 0.015];
+    let grasp = |nodes: Vec<u32>, displacement| Grasp {
+        nodes,
+        displacement,
+        ..Grasp::default()
+    };
+    let request = Request {
+        grasps: vec![grasp(vec![node], u)],
+        ..Request::default()
+    };
+    let answer = engine.predict(&request).unwrap();
+    let f = Vector3::from(answer.grasp_forces.unwrap()[0]);
+    let prior = Kelvinlet::new(m.config.prior);
+    let (mu, nu) = (m.config.materials["liver"].shear_modulus, m.config.prior.poisson_ratio);
+    // Far from the load (|r| = 40 ε) the regularized field is Kelvin's to O(ε²/|r|²) = 6e-4.
+    for direction in [Vector3::x(), Vector3::new(0.3, -1.0, 0.5).normalize()] {
+        let r = direction * 40.0 * m.config.prior.epsilon;
+        let response = Matrix3::from_fn(|i, j| prior.response([r.x, r.y, r.z])[i][j]);
+        let regularized = response * Vector3::from(u);
+        let singular = kelvin(mu, nu, r, f);
+        let relative = (regularized - singular).norm() / singular.norm();
+        assert!(
+            relative < 1e-3,
+            "at {r:?}: Kelvinlet {regularized:?}, Kelvin {singular:?}"
+        );
+    }
+    // A grasp of several points: far away its field is that of their total load (to the cluster's
+    // size over the distance, 1 %), and that total is what the grasp reports.
+    let held: Vec<u32> = m.node_sets["grasp_05"]
+        .iter()
+        .copied()
+        .filter(|&n| m.node_region[n as usize] == Some(liver))
+        .take(6)
+        .collect();
+    let request = Request {
+        grasps: vec![grasp(held.clone(), u)],
+        ..Request::default()
+    };
+    let total = Vector3::from(engine.predict(&request).unwrap().grasp_forces.unwrap()[0]);
+    let mut points = InteractionPoints::default();
+    for &n in &held {
+        points.push(n, m.positions[n as usize], u);
+    }
+    let centre: Vector3<f64> = held
+        .iter()
+        .map(|&n| Vector3::from(m.positions[n as usize]))
+        .sum::<Vector3<f64>>()
+        / 6.0;
+    let r = Vector3::new(-0.2, 1.0, 0.4).normalize() * 40.0 * m.config.prior.epsilon;
+    let far = centre + r;
+    let at = field(&prior, &points, &[[far.x, far.y, far.z]]);
+    let served = Vector3::new(at[0] as f64, at[1] as f64, at[2] as f64);
+    let singular = kelvin(mu, nu, r, total);
+    let relative = (served - singular).norm() / singular.norm();
+    assert!(
+        relative < 0.02,
+        "grasp of 6: Kelvinlet {served:?}, Kelvin of the total {singular:?}"
+    );
+    // Several grasps: one force each.
+    let two = Request {
+        grasps: vec![
+            grasp(m.node_sets["grasp_02"][..6].to_vec(), [0.0, 0.02, 0.0]),
+            grasp(m.node_sets["grasp_07"][..6].to_vec(), [0.01, 0.0, -0.01]),
+        ],
+        ..Request::default()
+    };
+    let forces = engine.predict(&two).unwrap().grasp_forces.unwrap();
+    assert_eq!(forces.len(), 2);
+    // Pulling up pulls the first grasper's load up; the second's points the other way in z.
+    assert!(forces[0][1] > 0.0 && forces[1][2] < 0.0, "{forces:?}");
+}

@@ -7,7 +7,8 @@ use std::path::PathBuf;
 use anyhow::{Context, bail};
 use nak::data::dataset;
 use nak::data::dcm::{self, SampleError, Summary};
-use nak::engine::{Engine, Request};
+use nak::data::force_error::{self, ForceSummary, GraspForceError};
+use nak::engine::{Engine, Forces, Request};
 use rayon::prelude::*;
 
 #[derive(clap::Args)]
@@ -80,6 +81,37 @@ fn time_requests(engine: &Engine, requests: &[Request]) -> Result<Option<Latency
     }))
 }
 
+/// The grasp force table, or why there is none.
+fn print_forces(forces: &BTreeMap<String, ForceSummary>, engine: &Engine, model: &str) {
+    if forces.is_empty() {
+        let gives = engine
+            .models()
+            .find(|m| m.name == model)
+            .is_some_and(|m| m.forces != Forces::Unavailable);
+        if gives {
+            println!("  grasp forces: the dataset stores none (made before nak stored them: regenerate it)");
+        } else {
+            println!("  grasp forces: {model} gives none");
+        }
+        return;
+    }
+    println!("  grasp forces against the finite elements (per grasp: |F̂ − F| / |F|, |F̂| / |F|, angle):");
+    println!("  subset       grasps   mean rel err   median rel err   median |F̂|/|F|   median angle °");
+    for subset in ["single", "multi", "combined"] {
+        if let Some(s) = forces.get(subset) {
+            println!(
+                "  {:<10} {:>8}  {:>13.3}  {:>15.3}  {:>15.3}  {:>15.1}",
+                subset,
+                s.grasps,
+                s.mean_relative_error,
+                s.median_relative_error,
+                s.median_magnitude_ratio,
+                s.median_angle_deg
+            );
+        }
+    }
+}
+
 pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
     let info = dataset::read_info(&args.data)?;
     let mesh = engine.mesh();
@@ -93,6 +125,7 @@ pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
         );
     }
     let mut errors: BTreeMap<String, Vec<SampleError>> = BTreeMap::new();
+    let mut force_errors: BTreeMap<String, Vec<GraspForceError>> = BTreeMap::new();
     let mut failed = Vec::new();
     let mut timed: Vec<Request> = Vec::new();
     let in_split = |s: &dataset::SampleRecord| args.split == "all" || s.split == args.split;
@@ -113,14 +146,23 @@ pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
                 .filter(|(s, _)| in_split(s) && !s.failed())
                 .map(|(s, _)| request_of(s)),
         );
-        let scored: Vec<(String, SampleError)> = samples
+        let scored: Vec<(String, SampleError, Vec<GraspForceError>)> = samples
             .par_iter()
             .filter(|(s, _)| in_split(s) && !s.failed())
             .map(|(sample, truth)| {
                 let prediction = engine.predict(&request_of(sample))?;
+                let forces = match (sample.forces(), &prediction.grasp_forces) {
+                    (Some(truth), Some(served)) => truth
+                        .iter()
+                        .zip(served)
+                        .filter_map(|(t, s)| force_error::grasp_force_error(t, s))
+                        .collect(),
+                    _ => Vec::new(),
+                };
                 Ok((
                     sample.subset.clone(),
                     dcm::sample_error(truth, &prediction.displacements, &mesh.nodal_volumes),
+                    forces,
                 ))
             })
             .collect::<Result<_, nak::engine::EngineError>>()?;
@@ -130,9 +172,11 @@ pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
                 .filter(|(s, _)| in_split(s) && s.failed())
                 .map(|(s, _)| s.index),
         );
-        for (subset, e) in scored {
-            errors.entry("combined".into()).or_default().push(e);
-            errors.entry(subset).or_default().push(e);
+        for (subset, e, f) in scored {
+            for key in ["combined".to_owned(), subset] {
+                errors.entry(key.clone()).or_default().push(e);
+                force_errors.entry(key).or_default().extend(&f);
+            }
         }
     }
     let results: BTreeMap<String, Summary> = errors
@@ -171,6 +215,11 @@ pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
         }
     }
     println!("  (DCM: volume-weighted, DESIGN.md §6; code: the paper's code form, comparable with its tables)");
+    let forces: BTreeMap<String, ForceSummary> = force_errors
+        .iter()
+        .filter_map(|(k, v)| force_error::summarize(v).map(|s| (k.clone(), s)))
+        .collect();
+    print_forces(&forces, engine, &args.model);
     // Time a sample spread evenly over the split: single- and two-grasper requests in proportion.
     let stride = timed.len().div_ceil(args.latency_samples.max(1)).max(1);
     let timed: Vec<Request> = if args.latency_samples == 0 {
@@ -193,7 +242,8 @@ pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
     if let Some(path) = &args.output {
         let json = serde_json::json!({
             "model": args.model, "data": args.data, "split": args.split, "regime": info.regime,
-            "mesh_hash": info.mesh_hash, "subsets": results, "failed_samples": failed,
+            "mesh_hash": info.mesh_hash, "subsets": results, "grasp_forces": forces,
+            "failed_samples": failed,
             "latency_us": latency, "threads": rayon::current_num_threads(),
         });
         std::fs::write(path, serde_json::to_string_pretty(&json)? + "\n")

@@ -58,6 +58,37 @@ pub fn run(engine: &Engine, model: &str, grasps: Vec<Grasp>, surface_only: bool)
     Ok(engine.predict(&request)?)
 }
 
+/// What `nak predict` prints: the field's size and reach, the time, and each grasper's force.
+pub fn summary(prediction: &Prediction, written: &Path) -> String {
+    let largest = prediction
+        .displacements
+        .chunks(3)
+        .map(|u| (u[0] * u[0] + u[1] * u[1] + u[2] * u[2]).sqrt())
+        .fold(0.0f32, f32::max);
+    let mut text = format!(
+        "{}: {} nodes, {} interaction points, largest displacement {:.2} mm, {:.0} µs → {}\n",
+        prediction.model,
+        prediction.displacements.len() / 3,
+        prediction.interaction_points,
+        largest * 1e3,
+        prediction.timing.total_us,
+        written.display()
+    );
+    match &prediction.grasp_forces {
+        Some(forces) => {
+            for (g, f) in forces.iter().enumerate() {
+                let magnitude = f.iter().map(|v| v * v).sum::<f64>().sqrt();
+                text += &format!(
+                    "  grasps[{g}] exerts ({:+.4}, {:+.4}, {:+.4}) N on the tissue, |F| = {magnitude:.4} N\n",
+                    f[0], f[1], f[2]
+                );
+            }
+        }
+        None => text += "  (this model gives no grasp forces; kelvinlet estimates them, green-linear is exact)\n",
+    }
+    text
+}
+
 /// Writes row-major (n, 3) f32 displacements as a NumPy .npy file.
 pub fn write_npy(path: &Path, displacements: &[f32]) -> anyhow::Result<()> {
     if !displacements.len().is_multiple_of(3) {

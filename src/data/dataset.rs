@@ -79,6 +79,11 @@ pub struct GraspRecord {
     pub region: String,
     pub nodes: Vec<u32>,
     pub displacement: [f64; 3],
+    /// The force (N) the grasper exerts on the tissue, from the finite elements (linear: K·u at the
+    /// held nodes; nonlinear: internal minus body force there). Absent in datasets made before nak
+    /// stored forces, and where the solve failed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub force: Option<[f64; 3]>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -115,6 +120,27 @@ impl SampleRecord {
             .collect()
     }
 
+    /// Sets each grasp's force from the force at each held node; a node held by two grasps counts
+    /// for the first, as the server counts it.
+    pub fn set_forces(&mut self, force_at: impl Fn(u32) -> [f64; 3]) {
+        let mut counted = std::collections::HashSet::new();
+        for grasp in &mut self.grasps {
+            let mut total = [0.0; 3];
+            for &n in grasp.nodes.iter().filter(|&&n| counted.insert(n)) {
+                let f = force_at(n);
+                for k in 0..3 {
+                    total[k] += f[k];
+                }
+            }
+            grasp.force = Some(total);
+        }
+    }
+
+    /// Each grasp's stored force, if every grasp has one.
+    pub fn forces(&self) -> Option<Vec<[f64; 3]>> {
+        self.grasps.iter().map(|g| g.force).collect()
+    }
+
     pub fn grasps(&self) -> Vec<Grasp> {
         self.grasps
             .iter()
@@ -149,6 +175,7 @@ pub fn draw(sampler: &GraspSampler, info: &DatasetInfo, index: u64) -> Result<Sa
             region: sampler.regions()[region].name.clone(),
             nodes: g.nodes,
             displacement: g.displacement,
+            force: None,
         })
         .collect();
     Ok(SampleRecord {

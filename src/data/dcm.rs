@@ -66,11 +66,7 @@ pub fn summarize(errors: &[SampleError]) -> Option<Summary> {
     let mut volume: Vec<f64> = errors.iter().map(|e| e.volume).collect();
     volume.sort_by(f64::total_cmp);
     let mean = volume.iter().sum::<f64>() / n;
-    let median = if volume.len() % 2 == 1 {
-        volume[volume.len() / 2]
-    } else {
-        (volume[volume.len() / 2 - 1] + volume[volume.len() / 2]) / 2.0
-    };
+    let median = median_of_sorted(&volume);
     Some(Summary {
         samples: errors.len(),
         dcm: 100.0 * (1.0 - mean),
@@ -83,6 +79,16 @@ pub fn summarize(errors: &[SampleError]) -> Option<Summary> {
         median_error: median,
         max_error: volume[volume.len() - 1],
     })
+}
+
+/// The median of sorted, non-empty `values`.
+pub(crate) fn median_of_sorted(values: &[f64]) -> f64 {
+    let mid = values.len() / 2;
+    if values.len() % 2 == 1 {
+        values[mid]
+    } else {
+        (values[mid - 1] + values[mid]) / 2.0
+    }
 }
 
 #[cfg(test)]

@@ -10,7 +10,7 @@ use super::GraspSampler;
 use super::dataset::{self, DatasetError, DatasetInfo, SampleRecord, SolveRecord};
 use crate::fem::nonlinear::SolveStats;
 use crate::fem::preload::Preloaded;
-use crate::fem::{GreenLinear, solve_dirichlet};
+use crate::fem::{GreenLinear, nodal_forces, solve_dirichlet};
 use crate::mesh::TetMesh;
 use crate::prior::InteractionPoints;
 
@@ -52,12 +52,12 @@ impl NonlinearTally {
     }
 }
 
-/// The exact linear field of one sample: through G when every grasped node has a column (fast),
-/// else by a direct Dirichlet solve (one factorization).
+/// The exact linear field of one sample, and its grasps' forces: through G when every grasped node
+/// has a column (fast), else by a direct Dirichlet solve (one factorization) and K·u.
 fn linear_field(
     mesh: &TetMesh,
     green: &GreenLinear,
-    sample: &SampleRecord,
+    sample: &mut SampleRecord,
     direct: &AtomicUsize,
 ) -> Result<Vec<f32>, DatasetError> {
     let mut points = InteractionPoints::default();
@@ -65,17 +65,25 @@ fn linear_field(
         points.push(n, mesh.positions[n as usize], u);
     }
     let mut field = vec![0.0f32; 3 * mesh.node_count()];
+    let mut forces = Vec::with_capacity(points.len());
+    let solver_error = |e: &dyn std::fmt::Display| DatasetError::Solver(format!("sample {}: {e}", sample.index));
     if points.nodes.iter().all(|n| green.candidates().binary_search(n).is_ok()) {
         green
-            .solve(&points, None, &mut field)
-            .map_err(|e| DatasetError::Solver(e.to_string()))?;
+            .solve(&points, None, &mut field, &mut forces)
+            .map_err(|e| solver_error(&e))?;
     } else {
         direct.fetch_add(1, Ordering::Relaxed);
-        let u = solve_dirichlet(mesh, &sample.prescribed())
-            .map_err(|e| DatasetError::Solver(format!("sample {}: {e}", sample.index)))?;
+        let u = solve_dirichlet(mesh, &sample.prescribed()).map_err(|e| solver_error(&e))?;
         write_field(&mut field, &u);
+        forces = nodal_forces(mesh, &u, &points.nodes).map_err(|e| solver_error(&e))?;
     }
+    sample.set_forces(|n| force_of(&points.nodes, &forces, n));
     Ok(field)
+}
+
+/// The force on `node` from per-point forces listed in the order of `nodes`.
+fn force_of(nodes: &[u32], forces: &[[f64; 3]], node: u32) -> [f64; 3] {
+    nodes.iter().position(|&m| m == node).map_or([0.0; 3], |i| forces[i])
 }
 
 fn write_field(field: &mut [f32], u: &[[f64; 3]]) {
@@ -118,6 +126,8 @@ pub fn generate_nonlinear(
         let record = match preloaded.grasp(&sample.prescribed()) {
             Ok(equilibrium) => {
                 write_field(&mut field, &equilibrium.displacement);
+                let held: Vec<u32> = sample.prescribed().iter().map(|&(n, _)| n).collect();
+                sample.set_forces(|n| force_of(&held, &equilibrium.reactions, n));
                 SolveRecord {
                     stats: equilibrium.stats,
                     failure: None,

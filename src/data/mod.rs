@@ -1,7 +1,9 @@
-//! Grasp sampling from the paper's distributions, datasets of ground truth, and the DCM metric.
+//! Grasp sampling from the paper's distributions, datasets of ground truth, the DCM metric and the
+//! error of grasp forces.
 
 pub mod dataset;
 pub mod dcm;
+pub mod force_error;
 pub mod generate;
 pub mod sampling;
 

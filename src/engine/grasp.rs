@@ -17,8 +17,9 @@ pub struct Grasp {
     pub displacement: [f64; 3],
 }
 
-/// Resolves `grasps` into `out` (cleared first). Each held node is one interaction point; a node held
-/// by two grasps must be moved the same way by both and is then counted once.
+/// Resolves `grasps` into `out` (cleared first), grasp by grasp. Each held node is one interaction
+/// point; a node held by two grasps must be moved the same way by both and is then counted once, for
+/// the first.
 pub fn resolve(
     mesh: &TetMesh,
     limits: &Limits,
@@ -72,6 +73,7 @@ pub fn resolve(
                 snap(mesh, limits, g, point, grasp.radius, u, out)?;
             }
         }
+        out.end_grasp();
     }
     Ok(())
 }

@@ -9,7 +9,9 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 pub use grasp::Grasp;
-pub use model::{DeformationModel, KelvinletModel, ModelError, ModelInfo, ModelKind, StageTiming, Target};
+pub use model::{
+    Answer, DeformationModel, Forces, KelvinletModel, ModelError, ModelInfo, ModelKind, StageTiming, Target,
+};
 
 use crate::mesh::TetMesh;
 use crate::prior::gpu::GpuError;
@@ -91,6 +93,8 @@ pub struct Prediction {
     /// The node of each row, unless the selection was every node.
     pub node_ids: Option<Vec<u32>>,
     pub interaction_points: usize,
+    /// Per grasp, the force (N) the grasper exerts on the tissue, when the model gives forces.
+    pub grasp_forces: Option<Vec<[f64; 3]>>,
     pub timing: Timing,
 }
 
@@ -99,6 +103,7 @@ pub struct Prediction {
 struct Scratch {
     points: InteractionPoints,
     workspace: Workspace,
+    point_forces: Vec<[f64; 3]>,
 }
 
 pub struct Engine {
@@ -236,18 +241,28 @@ impl Engine {
         let resolved = Instant::now();
         let mut displacements = vec![0.0f32; 3 * target.cloud.len()];
         let mut stages = StageTiming::default();
+        scratch.point_forces.clear();
+        let failed = |source| EngineError::Model {
+            model: model.info().name.clone(),
+            source,
+        };
+        let mut output = Answer {
+            displacements: &mut displacements,
+            forces: &mut scratch.point_forces,
+        };
         model
             .predict(
                 &scratch.points,
                 target,
                 &mut scratch.workspace,
-                &mut displacements,
+                &mut output,
                 &mut stages,
             )
-            .map_err(|source| EngineError::Model {
-                model: model.info().name.clone(),
-                source,
-            })?;
+            .map_err(failed)?;
+        let grasp_forces = match model.info().forces {
+            Forces::Unavailable => None,
+            _ => Some(grasp_totals(&scratch.points, &scratch.point_forces).map_err(failed)?),
+        };
         let timing = Timing {
             resolve_us: (resolved - start).as_secs_f32() * 1e6,
             prior_us: stages.prior_us,
@@ -259,6 +274,7 @@ impl Engine {
             displacements,
             node_ids: target.nodes.map(<[u32]>::to_vec),
             interaction_points: scratch.points.len(),
+            grasp_forces,
             timing,
         })
     }
@@ -275,4 +291,23 @@ impl Engine {
             pool.push(scratch);
         }
     }
+}
+
+/// The force on each grasp: the sum of the forces on its interaction points.
+pub fn grasp_totals(points: &InteractionPoints, point_forces: &[[f64; 3]]) -> Result<Vec<[f64; 3]>, ModelError> {
+    if point_forces.len() != points.len() {
+        return Err(ModelError::Runtime(format!(
+            "gave {} point forces for {} interaction points",
+            point_forces.len(),
+            points.len()
+        )));
+    }
+    Ok(points
+        .grasp_ranges()
+        .map(|range| {
+            point_forces[range]
+                .iter()
+                .fold([0.0; 3], |sum, f| std::array::from_fn(|k| sum[k] + f[k]))
+        })
+        .collect())
 }

@@ -17,7 +17,7 @@ use nalgebra::{DMatrix, DVector};
 use rayon::prelude::*;
 
 use super::{FemError, LinearSystem};
-use crate::engine::{DeformationModel, ModelError, ModelInfo, ModelKind, StageTiming, Target};
+use crate::engine::{Answer, DeformationModel, Forces, ModelError, ModelInfo, ModelKind, StageTiming, Target};
 use crate::mesh::TetMesh;
 use crate::prior::{InteractionPoints, Workspace};
 
@@ -158,8 +158,15 @@ impl GreenLinear {
         bytemuck::cast_slice(&self.map[start..start + 4 * len])
     }
 
-    /// Writes the displacement of `target`'s nodes (all nodes when `nodes` is `None`).
-    pub fn solve(&self, points: &InteractionPoints, nodes: Option<&[u32]>, out: &mut [f32]) -> Result<(), ModelError> {
+    /// Writes the displacement of `target`'s nodes (all nodes when `nodes` is `None`) into `out`, and
+    /// the force on each interaction point, `(G[S,S])⁻¹ u_S` (N), into `forces`.
+    pub fn solve(
+        &self,
+        points: &InteractionPoints,
+        nodes: Option<&[u32]>,
+        out: &mut [f32],
+        forces: &mut Vec<[f64; 3]>,
+    ) -> Result<(), ModelError> {
         let k = points.len();
         let mut columns = Vec::with_capacity(k);
         for &n in &points.nodes {
@@ -178,11 +185,14 @@ impl GreenLinear {
             self.column(columns[c / 3], c % 3)[3 * points.nodes[r / 3] as usize + r % 3] as f64
         });
         let u = DVector::from_iterator(3 * k, points.displacements.iter().flatten().copied());
-        let forces = gss
+        let forces_at_s = gss
             .cholesky()
             .ok_or_else(|| ModelError::Runtime("G[S,S] is not positive definite".into()))?
             .solve(&u);
-        let weights: Vec<(usize, usize, f32)> = (0..3 * k).map(|i| (columns[i / 3], i % 3, forces[i] as f32)).collect();
+        forces.extend(forces_at_s.as_slice().chunks_exact(3).map(|f| [f[0], f[1], f[2]]));
+        let weights: Vec<(usize, usize, f32)> = (0..3 * k)
+            .map(|i| (columns[i / 3], i % 3, forces_at_s[i] as f32))
+            .collect();
         match nodes {
             None => {
                 // Rows split over cores; each adds the 3K weighted columns.
@@ -301,6 +311,10 @@ impl GreenLinearModel {
                 "exact linear FEM through precomputed Green's functions (capacitance matrix)".to_owned(),
             ),
             ("candidate_nodes".to_owned(), green.candidates.len().to_string()),
+            (
+                "forces".to_owned(),
+                "exact: (G[S,S])⁻¹ u_S, the linear FEM's K·u at the held nodes".to_owned(),
+            ),
             ("cache".to_owned(), green.path.display().to_string()),
         ]);
         Self {
@@ -310,6 +324,7 @@ impl GreenLinearModel {
                 mesh: mesh.content_hash.clone(),
                 regime: "linear".to_owned(),
                 metadata,
+                forces: Forces::Exact,
             },
             green,
         }
@@ -326,11 +341,11 @@ impl DeformationModel for GreenLinearModel {
         points: &InteractionPoints,
         target: Target<'_>,
         _workspace: &mut Workspace,
-        out: &mut [f32],
+        out: &mut Answer<'_>,
         timing: &mut StageTiming,
     ) -> Result<(), ModelError> {
         let start = Instant::now();
-        self.green.solve(points, target.nodes, out)?;
+        self.green.solve(points, target.nodes, out.displacements, out.forces)?;
         timing.network_us = start.elapsed().as_secs_f32() * 1e6;
         Ok(())
     }

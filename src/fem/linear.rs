@@ -180,6 +180,34 @@ impl LinearSystem {
     }
 }
 
+/// The elastic force `K·u` (N) at each of `nodes`, summed element by element. At the held nodes of
+/// a Dirichlet solution it is the force that holds them there (nothing else loads a linear body).
+pub fn nodal_forces(mesh: &TetMesh, u: &[[f64; 3]], nodes: &[u32]) -> Result<Vec<[f64; 3]>, FemError> {
+    let lame = lame_per_tet(mesh)?;
+    let mut slot = vec![None; mesh.node_count()];
+    for (i, &n) in nodes.iter().enumerate() {
+        slot[n as usize] = Some(i);
+    }
+    let mut forces = vec![[0.0; 3]; nodes.len()];
+    for (t, tet) in mesh.tets.iter().enumerate() {
+        if tet.iter().all(|&n| slot[n as usize].is_none()) {
+            continue;
+        }
+        let (grads, volume) =
+            shape_gradients(tet.map(|n| mesh.positions[n as usize])).ok_or(FemError::Degenerate(t))?;
+        let k = element_stiffness(&grads, volume, lame[t].0, lame[t].1);
+        for (a, &node) in tet.iter().enumerate() {
+            let Some(i) = slot[node as usize] else { continue };
+            for (c, f) in forces[i].iter_mut().enumerate() {
+                *f += (0..12)
+                    .map(|d| k[3 * a + c][d] * u[tet[d / 3] as usize][d % 3])
+                    .sum::<f64>();
+            }
+        }
+    }
+    Ok(forces)
+}
+
 /// The displacement of every node with `prescribed` nodes moved as given and `fixed` nodes held:
 /// the reference direct solve (one factorization per call).
 pub fn solve_dirichlet(mesh: &TetMesh, prescribed: &[(u32, [f64; 3])]) -> Result<Vec<[f64; 3]>, FemError> {

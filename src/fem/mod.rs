@@ -8,7 +8,7 @@ pub mod nonlinear;
 pub mod preload;
 
 pub use green::{GreenLinear, GreenLinearModel};
-pub use linear::{DofMap, LinearSystem, solve_dirichlet};
+pub use linear::{DofMap, LinearSystem, nodal_forces, solve_dirichlet};
 
 use crate::mesh::{Material, TetMesh};
 

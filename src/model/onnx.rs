@@ -15,7 +15,7 @@ use super::ModelLoadError;
 use super::basis::{self, Basis};
 use super::manifest::{Manifest, Mode};
 use super::signature::{self, COEFFICIENTS, DISPLACEMENT, Input, Output, Signature};
-use crate::engine::{DeformationModel, ModelError, ModelInfo, ModelKind, StageTiming, Target};
+use crate::engine::{Answer, DeformationModel, Forces, ModelError, ModelInfo, ModelKind, StageTiming, Target};
 use crate::mesh::TetMesh;
 use crate::prior::gpu::{GpuBasis, GpuError, GpuPrior};
 use crate::prior::{Coefficients, InteractionPoints, Kelvinlet, NodeCloud, Workspace};
@@ -176,6 +176,9 @@ impl OnnxModel {
                 mesh: mesh.content_hash.clone(),
                 regime: manifest.model.regime.clone(),
                 metadata,
+                // The contract has no force output: a network's field says nothing exact about the
+                // loads that hold it, and the prior's estimate would not be the network's.
+                forces: Forces::Unavailable,
             },
             mode: manifest.model.mode,
             signature,
@@ -384,11 +387,11 @@ impl DeformationModel for OnnxModel {
         points: &InteractionPoints,
         target: Target<'_>,
         workspace: &mut Workspace,
-        out: &mut [f32],
+        out: &mut Answer<'_>,
         timing: &mut StageTiming,
     ) -> Result<(), ModelError> {
         let mut buffers = self.take_buffers();
-        let result = self.predict_with(points, target, workspace, &mut buffers, out, timing);
+        let result = self.predict_with(points, target, workspace, &mut buffers, out.displacements, timing);
         self.return_buffers(buffers);
         result
     }

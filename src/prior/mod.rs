@@ -62,6 +62,9 @@ pub struct InteractionPoints {
     pub nodes: Vec<u32>,
     pub positions: Vec<[f64; 3]>,
     pub displacements: Vec<[f64; 3]>,
+    /// Where each grasp's points end (exclusive), when the points were resolved from grasps: grasp
+    /// `g` holds points `grasp_ends[g-1]..grasp_ends[g]`. Empty: the points form one group.
+    pub grasp_ends: Vec<usize>,
 }
 
 impl InteractionPoints {
@@ -77,6 +80,22 @@ impl InteractionPoints {
         self.nodes.clear();
         self.positions.clear();
         self.displacements.clear();
+        self.grasp_ends.clear();
+    }
+
+    /// Marks the points pushed since the last call as one grasp's.
+    pub fn end_grasp(&mut self) {
+        self.grasp_ends.push(self.len());
+    }
+
+    /// The points of each grasp, in order (one range over every point when none was marked).
+    pub fn grasp_ranges(&self) -> impl Iterator<Item = std::ops::Range<usize>> + '_ {
+        let whole = self.grasp_ends.is_empty().then_some(self.len());
+        self.grasp_ends.iter().copied().chain(whole).scan(0, |start, end| {
+            let range = *start..end;
+            *start = end;
+            Some(range)
+        })
     }
 
     pub fn push(&mut self, node: u32, position: [f64; 3], displacement: [f64; 3]) {

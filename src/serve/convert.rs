@@ -3,7 +3,7 @@
 use bytes::Bytes;
 use tonic::{Code, Status};
 
-use crate::engine::{EngineError, Grasp, ModelError, ModelInfo, ModelKind, Prediction, Request, Selection};
+use crate::engine::{EngineError, Forces, Grasp, ModelError, ModelInfo, ModelKind, Prediction, Request, Selection};
 use crate::mesh::{Sampling, TetMesh};
 use crate::proto::v1 as pb;
 
@@ -111,6 +111,16 @@ pub fn response(sequence: u64, prediction: Prediction) -> pb::PredictResponse {
         model: prediction.model,
         interaction_points: prediction.interaction_points as u32,
         error: None,
+        grasp_forces: prediction
+            .grasp_forces
+            .unwrap_or_default()
+            .into_iter()
+            .map(|f| pb::Vec3 {
+                x: f[0] as f32,
+                y: f[1] as f32,
+                z: f[2] as f32,
+            })
+            .collect(),
     }
 }
 
@@ -138,6 +148,11 @@ pub fn model_info(info: &ModelInfo) -> pb::ModelInfo {
         mesh: info.mesh.clone(),
         regime: info.regime.clone(),
         metadata: info.metadata.clone().into_iter().collect(),
+        forces: match info.forces {
+            Forces::Unavailable => pb::Forces::Unavailable,
+            Forces::Exact => pb::Forces::Exact,
+            Forces::Estimate => pb::Forces::Estimate,
+        } as i32,
     }
 }
 
