@@ -1,4 +1,5 @@
-"""A minimal nak client in Python (grpcio): fetch the mesh, lift grasp region 4 by 2 cm, read the field.
+"""A minimal nak client in Python (grpcio): fetch the mesh, lift grasp region 4 by 2 cm, read the field
+and, from models that give them, the force each grasper exerts.
 
 Start a server (cargo run --release -- serve), then: python examples/client.py [127.0.0.1:50051 [MODEL]]
 MODEL defaults to the most accurate network shipped with the phantom; `kelvinlet` is the prior alone.
@@ -9,6 +10,7 @@ from __future__ import annotations
 
 import importlib
 import sys
+from dataclasses import dataclass
 import tempfile
 from pathlib import Path
 from types import ModuleType
@@ -35,7 +37,16 @@ def load_stubs() -> tuple[ModuleType, ModuleType]:
 BEST_MODEL = "pod-res"
 
 
-def main(target: str = "127.0.0.1:50051", model: str = BEST_MODEL) -> np.ndarray:
+@dataclass
+class Answer:
+    """Displacements (n, 3) in metres, and per grasp the force (N) it exerts on the tissue, or None when
+    the model gives no forces (ModelInfo.forces)."""
+
+    displacements: np.ndarray
+    grasp_forces: np.ndarray | None
+
+
+def main(target: str = "127.0.0.1:50051", model: str = BEST_MODEL) -> Answer:
     pb, rpc = load_stubs()
     with grpc.insecure_channel(target) as channel:
         stub = rpc.DeformationStub(channel)
@@ -48,12 +59,15 @@ def main(target: str = "127.0.0.1:50051", model: str = BEST_MODEL) -> np.ndarray
         )
         response = stub.Predict(request)
         u = np.frombuffer(response.displacements, dtype="<f4").reshape(-1, 3)
+        forces = np.array([[f.x, f.y, f.z] for f in response.grasp_forces]) if response.grasp_forces else None
         print(
             f"{model}: {len(positions)} nodes; {response.interaction_points} interaction points; "
             f"largest displacement {1e3 * np.linalg.norm(u, axis=1).max():.1f} mm; "
             f"server {response.timing.total_us:.0f} µs"
         )
-        return u
+        if forces is not None:
+            print(f"grasper force {forces[0].round(4)} N")
+        return Answer(u, forces)
 
 
 if __name__ == "__main__":

@@ -1,4 +1,5 @@
-//! A minimal nak client: fetch the mesh, lift grasp region 4 by 2 cm, print what came back.
+//! A minimal nak client: fetch the mesh, lift grasp region 4 by 2 cm, print what came back (the
+//! field's reach, the server's time and, from models that give them, the grasper's force).
 //!
 //! Start a server (`cargo run --release -- serve`), then `cargo run --release --example client [URL [MODEL]]`.
 //! MODEL defaults to the most accurate network shipped with the phantom; `kelvinlet` is the prior alone.
@@ -55,6 +56,13 @@ async fn main() -> anyhow::Result<()> {
             t.prior_us,
             round_trip.as_secs_f64() * 1e6
         );
+        // Empty when the model gives no forces (ListModels says which do).
+        for f in &response.grasp_forces {
+            println!(
+                "  the grasper exerts ({:+.3}, {:+.3}, {:+.3}) N on the tissue",
+                f.x, f.y, f.z
+            );
+        }
     }
     Ok(())
 }

@@ -73,6 +73,9 @@ def test_unary_calls_and_a_stream_are_recorded_in_order(nak_binary: Path, tmp_pa
     first = responses[0]
     u = np.frombuffer(first.displacements, dtype="<f4").reshape(-1, 3)  # type: ignore[attr-defined]
     assert len(first.node_ids) == u.shape[0] == first.node_count > 1000  # type: ignore[attr-defined]
+    # The Kelvinlet's force estimate for the one grasp is recorded with the answer.
+    (force,) = first.grasp_forces  # type: ignore[attr-defined]
+    assert force.y > 0.0  # lifting the region pulls it up
     assert by_topic["/nak/surface"], "no point cloud for Foxglove"
     cloud = by_topic["/nak/surface"][0][1]
     assert cloud.point_stride == 16 and [f.name for f in cloud.fields] == ["x", "y", "z", "displacement_mm"]  # type: ignore[attr-defined]
