@@ -33,7 +33,13 @@ fn serve(c: &mut Criterion) {
         .block_on(tokio::net::TcpListener::bind("127.0.0.1:0"))
         .expect("bind");
     let address = listener.local_addr().expect("address");
-    server_runtime.spawn(nak::serve::run(engine, listener, 1 << 20, None, std::future::pending()));
+    server_runtime.spawn(nak::serve::run(
+        engine,
+        listener,
+        nak::serve::Intake::with_message_limit(1 << 20),
+        None,
+        std::future::pending(),
+    ));
 
     let client_runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()

@@ -69,7 +69,7 @@ enum Command {
 #[derive(clap::Args)]
 struct ServeArgs {
     /// TOML file with any of: mesh, models, ort_dylib, listen, max_displacement_mm,
-    /// max_interaction_points, max_message_bytes. Flags override it.
+    /// max_interaction_points, max_message_bytes, max_in_flight. Flags override it.
     #[arg(long)]
     config: Option<PathBuf>,
     /// A model directory (its default mesh) or an .msh file with model.toml beside it
@@ -88,6 +88,10 @@ struct ServeArgs {
     /// Largest request message, bytes [default: 1048576].
     #[arg(long)]
     max_message_bytes: Option<usize>,
+    /// Most requests computed or waiting for the compute pool at once; more are refused at once
+    /// with RESOURCE_EXHAUSTED [default: 4 per core].
+    #[arg(long)]
+    max_in_flight: Option<usize>,
     #[command(flatten)]
     models: ModelArgs,
     /// Record every exchange to MCAP files in this directory (open them in Foxglove or with `nak replay`).
@@ -230,6 +234,7 @@ fn serve_config(args: ServeArgs) -> anyhow::Result<ServeConfig> {
     config.max_displacement_mm = args.max_displacement_mm.unwrap_or(config.max_displacement_mm);
     config.max_interaction_points = args.max_interaction_points.unwrap_or(config.max_interaction_points);
     config.max_message_bytes = args.max_message_bytes.unwrap_or(config.max_message_bytes);
+    config.max_in_flight = args.max_in_flight.unwrap_or(config.max_in_flight);
     config.models.extend(args.models.dirs);
     config.green_linear |= args.models.green_linear;
     config.cache_dir = args.models.cache_dir.or(config.cache_dir);
@@ -324,14 +329,11 @@ fn serve(args: ServeArgs) -> anyhow::Result<()> {
         // Scripts and tests read this line to find a port chosen with --listen 127.0.0.1:0.
         info!(address = %listener.local_addr()?, "listening");
         let recorder = start_recorder(&config, &engine)?;
-        serve::run(
-            engine,
-            listener,
-            config.max_message_bytes,
-            recorder.clone(),
-            serve::shutdown_signal(),
-        )
-        .await?;
+        let intake = serve::Intake {
+            max_message_bytes: config.max_message_bytes,
+            max_in_flight: config.max_in_flight(),
+        };
+        serve::run(engine, listener, intake, recorder.clone(), serve::shutdown_signal()).await?;
         if let Some(recorder) = recorder {
             recorder.close().context("the recording was not finished cleanly")?;
         }

@@ -1,5 +1,6 @@
 //! `nak serve`: the gRPC server, with health checking, reflection and graceful shutdown.
 
+pub mod admission;
 mod convert;
 mod service;
 mod status_codes;
@@ -20,6 +21,7 @@ use crate::prior::PriorBackend;
 use crate::proto::v1::FILE_DESCRIPTOR_SET;
 use crate::proto::v1::deformation_server::DeformationServer;
 use crate::record::{Payload, RecordConfig, Recorder};
+use admission::Admission;
 
 /// Server settings, from flags or a TOML file (`nak serve --config serve.toml`).
 #[derive(Debug, Clone, PartialEq, Deserialize, serde::Serialize)]
@@ -44,6 +46,9 @@ pub struct ServeConfig {
     pub max_interaction_points: usize,
     /// Largest request message accepted, in bytes; larger ones get RESOURCE_EXHAUSTED.
     pub max_message_bytes: usize,
+    /// Most requests admitted to the compute pool at once; more get RESOURCE_EXHAUSTED at once.
+    /// 0: [`admission::PER_THREAD`] per compute thread.
+    pub max_in_flight: usize,
     /// Record every exchange to MCAP files in this directory.
     pub record: Option<PathBuf>,
     pub record_payload: Payload,
@@ -67,6 +72,7 @@ impl Default for ServeConfig {
             max_displacement_mm: limits.max_displacement_m * 1e3,
             max_interaction_points: limits.max_interaction_points,
             max_message_bytes: 1 << 20,
+            max_in_flight: 0,
             record: None,
             record_payload: Payload::Surface,
             record_rotate_mb: 1024,
@@ -97,6 +103,14 @@ impl ServeConfig {
         })
     }
 
+    /// The admission bound: `max_in_flight`, or 4 per compute thread when 0.
+    pub fn max_in_flight(&self) -> usize {
+        match self.max_in_flight {
+            0 => admission::PER_THREAD * rayon::current_num_threads(),
+            n => n,
+        }
+    }
+
     pub fn limits(&self) -> Limits {
         Limits {
             max_displacement_m: self.max_displacement_mm * 1e-3,
@@ -113,11 +127,28 @@ pub enum ServeError {
     Reflection(#[from] tonic_reflection::server::Error),
 }
 
+/// How much one server takes in: the largest message, and the most requests admitted at once.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Intake {
+    pub max_message_bytes: usize,
+    pub max_in_flight: usize,
+}
+
+impl Intake {
+    /// The default bound on in-flight requests for this machine, with `max_message_bytes`.
+    pub fn with_message_limit(max_message_bytes: usize) -> Self {
+        Self {
+            max_message_bytes,
+            max_in_flight: ServeConfig::default().max_in_flight(),
+        }
+    }
+}
+
 /// Serves `engine` on `listener` until `shutdown` completes, then drains in-flight calls.
 pub async fn run(
     engine: Arc<Engine>,
     listener: TcpListener,
-    max_message_bytes: usize,
+    intake: Intake,
     recorder: Option<Arc<Recorder>>,
     shutdown: impl std::future::Future<Output = ()> + Send,
 ) -> Result<(), ServeError> {
@@ -132,9 +163,11 @@ pub async fn run(
     if let Some(recorder) = &recorder {
         tokio::spawn(report_drops(Arc::downgrade(recorder)));
     }
-    let deformation = DeformationServer::new(DeformationService::new(engine.clone(), recorder))
-        .max_decoding_message_size(max_message_bytes);
+    let admission = Admission::new(intake.max_in_flight);
+    let deformation = DeformationServer::new(DeformationService::new(engine.clone(), recorder, admission))
+        .max_decoding_message_size(intake.max_message_bytes);
     info!(
+        max_in_flight = intake.max_in_flight,
         address = ?listener.local_addr().ok(),
         mesh = %engine.mesh().config.name,
         nodes = engine.mesh().node_count(),

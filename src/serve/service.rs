@@ -8,6 +8,7 @@ use tokio_stream::{Stream, StreamExt};
 use tonic::{Code, Request, Response, Status, Streaming};
 use tracing::{debug, warn};
 
+use super::admission::{self, Admission};
 use super::convert;
 use super::status_codes::TOO_LARGE;
 use crate::engine::Engine;
@@ -19,25 +20,31 @@ use crate::record::{Exchange, Recorder};
 pub struct DeformationService {
     engine: Arc<Engine>,
     recorder: Option<Arc<Recorder>>,
+    admission: Arc<Admission>,
     started: Instant,
     /// GetMesh's answer, built once: the mesh never changes while serving.
     mesh: Arc<pb::Mesh>,
 }
 
 impl DeformationService {
-    pub fn new(engine: Arc<Engine>, recorder: Option<Arc<Recorder>>) -> Self {
+    pub fn new(engine: Arc<Engine>, recorder: Option<Arc<Recorder>>, admission: Arc<Admission>) -> Self {
         Self {
             mesh: Arc::new(convert::mesh(engine.mesh())),
             engine,
             recorder,
+            admission,
             started: Instant::now(),
         }
     }
 
     /// Answers one request and hands the exchange to the recorder, if recording.
-    async fn predict_one(&self, message: pb::PredictRequest) -> Result<pb::PredictResponse, Status> {
+    async fn predict_one(
+        &self,
+        message: pb::PredictRequest,
+        deadline: Option<Instant>,
+    ) -> Result<pb::PredictResponse, Status> {
         let received = SystemTime::now();
-        let answer = self.answer(&message).await;
+        let answer = self.answer(&message, deadline).await;
         if let Some(recorder) = &self.recorder {
             recorder.record(Exchange {
                 received,
@@ -55,16 +62,52 @@ impl DeformationService {
     /// parallel inside; running them inline would block the runtime's workers, stalling every other
     /// connection, and oversubscribe the cores with two pools. rayon's pool runs both the requests and
     /// the work inside them, with one thread per core.
-    async fn answer(&self, message: &pb::PredictRequest) -> Result<pb::PredictResponse, Status> {
+    ///
+    /// Only admitted requests reach the pool, and the pool computes nothing for a caller that has gone
+    /// or whose deadline has passed.
+    async fn answer(
+        &self,
+        message: &pb::PredictRequest,
+        deadline: Option<Instant>,
+    ) -> Result<pb::PredictResponse, Status> {
         let request = convert::request(message)?;
+        let permit = self.admission.try_admit().ok_or_else(|| {
+            Status::resource_exhausted(format!(
+                "the server is at capacity: {} requests are being computed or waiting (--max-in-flight); retry \
+                 shortly",
+                self.admission.limit()
+            ))
+        })?;
         let engine = self.engine.clone();
+        let admission = self.admission.clone();
+        let waiting = Instant::now();
+        // None: the deadline passed before the pool reached the request.
         let (tx, rx) = tokio::sync::oneshot::channel();
         rayon::spawn(move || {
-            let _ = tx.send(engine.predict(&request));
+            let _permit = permit;
+            if tx.is_closed() {
+                admission.count_abandoned();
+            } else if deadline.is_some_and(|d| Instant::now() >= d) {
+                admission.count_abandoned();
+                let _ = tx.send(None);
+            } else {
+                let _ = tx.send(Some(engine.predict(&request)));
+            }
         });
-        let prediction = rx
-            .await
+        let late = || {
+            self.admission.count_expired();
+            Status::deadline_exceeded(format!(
+                "the deadline passed after {:.1} ms waiting for the compute pool; nothing was computed",
+                waiting.elapsed().as_secs_f64() * 1e3
+            ))
+        };
+        let outcome = match deadline {
+            Some(d) => tokio::time::timeout_at(d.into(), rx).await.map_err(|_| late())?,
+            None => rx.await,
+        };
+        let prediction = outcome
             .map_err(|_| Status::internal("the prediction was abandoned (worker panicked)"))?
+            .ok_or_else(late)?
             .map_err(|e| {
                 let status = convert::status(&e);
                 if status.code() == Code::Internal {
@@ -98,6 +141,7 @@ impl Deformation for DeformationService {
             version: env!("CARGO_PKG_VERSION").to_owned(),
             uptime_ms: self.started.elapsed().as_millis() as u64,
             recorder: Some(self.recorder.as_ref().map_or_else(Default::default, |r| r.status())),
+            admission: Some(self.admission.status()),
         }))
     }
 
@@ -110,7 +154,10 @@ impl Deformation for DeformationService {
     }
 
     async fn predict(&self, request: Request<pb::PredictRequest>) -> Result<Response<pb::PredictResponse>, Status> {
-        self.predict_one(request.into_inner()).await.map(Response::new)
+        let deadline = admission::deadline(request.metadata(), Instant::now());
+        self.predict_one(request.into_inner(), deadline)
+            .await
+            .map(Response::new)
     }
 
     type PredictStreamStream = ResponseStream;
@@ -119,6 +166,8 @@ impl Deformation for DeformationService {
         &self,
         request: Request<Streaming<pb::PredictRequest>>,
     ) -> Result<Response<Self::PredictStreamStream>, Status> {
+        // A stream's deadline is its call's: every message must be answered before it.
+        let deadline = admission::deadline(request.metadata(), Instant::now());
         let mut incoming = request.into_inner();
         let service = self.clone();
         // Requests are answered one at a time as they arrive, so answers keep their order. A refused
@@ -129,7 +178,7 @@ impl Deformation for DeformationService {
                     Ok(message) => {
                         let sequence = message.sequence;
                         Ok(service
-                            .predict_one(message)
+                            .predict_one(message, deadline)
                             .await
                             .unwrap_or_else(|status| pb::PredictResponse {
                                 sequence,

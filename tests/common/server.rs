@@ -7,6 +7,7 @@ use std::sync::Arc;
 use nak::engine::{Engine, Limits};
 use nak::mesh::{self, MeshSource};
 use nak::proto::v1::deformation_client::DeformationClient;
+use nak::serve::Intake;
 use tokio::sync::oneshot;
 use tonic::transport::Channel;
 
@@ -27,6 +28,11 @@ impl TestServer {
 
     /// Serves a prepared engine (with extra models, say).
     pub async fn with_engine(engine: Engine, max_message_bytes: usize) -> Self {
+        Self::with_intake(engine, Intake::with_message_limit(max_message_bytes)).await
+    }
+
+    /// Serves a prepared engine with the given message and admission limits.
+    pub async fn with_intake(engine: Engine, intake: Intake) -> Self {
         let engine = Arc::new(engine);
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("bind");
         let address = listener.local_addr().expect("address");
@@ -36,7 +42,7 @@ impl TestServer {
             let shutdown = async {
                 let _ = stopped.await;
             };
-            nak::serve::run(served, listener, max_message_bytes, None, shutdown)
+            nak::serve::run(served, listener, intake, None, shutdown)
                 .await
                 .expect("server");
         });
