@@ -130,6 +130,13 @@ def test_bad_input_is_refused_naming_the_file_or_key(coarse_data: Path, tmp_path
     with pytest.raises(TrainingInputError, match=r"no complete samples in split 'train'"):
         dataset.load("train")
 
+    with pytest.raises(TrainingInputError, match=r"pod_samples = -1: must be 0 \(all\) or more"):
+        parse_config(tiny_config(architecture="pod", pod_samples=-1), "x.toml")
+    few = parse_config(tiny_config(architecture="pod", modes=8, pod_samples=4), "x.toml")
+    (tmp_path / "few").mkdir()
+    with pytest.raises(TrainingInputError, match=r"modes = 8 exceeds the 4 train samples of the POD"):
+        ReducedTrainer(few, open_dataset(coarse_data), tmp_path / "few", log=quiet)
+
     other = tmp_path / "other"
     shutil.copytree(coarse_data, other)
     info = (other / "dataset.json").read_text()

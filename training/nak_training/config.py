@@ -46,6 +46,9 @@ class TrainConfig:
     encoder: str = "linear"  # linear (more accurate) | pooled (fewer operators, faster)
     basis_precision: str = "f16"
     form: str = "basis"
+    # POD from the first this many train targets (0: all): the S × S Gram matrix of the POD bounds how
+    # many samples it can take, not how many the encoder may learn from.
+    pod_samples: int = 0
     seed: int = 0
     threads: int = 2
     description: str = ""
@@ -97,6 +100,8 @@ def parse_config(values: dict[str, Any], origin: str) -> TrainConfig:
     for key in ("steps", "batch", "query_nodes", "val_every", "val_samples", "threads", "modes", "width"):
         if int(getattr(config, key)) < 1:
             raise TrainingInputError(origin, f"{key} = {getattr(config, key)!r}: must be at least 1")
+    if config.pod_samples < 0:
+        raise TrainingInputError(origin, f"pod_samples = {config.pod_samples!r}: must be 0 (all) or more")
     return config
 
 

@@ -89,12 +89,14 @@ class ReducedTrainer(Run):
                     return basis
             except (RuntimeError, KeyError) as e:
                 raise TrainingInputError(path, f"unreadable basis ({e}); delete it to recompute") from e
-        if self.config.modes > len(self.train):
+        pod_samples = min(self.config.pod_samples or len(self.train), len(self.train))
+        if self.config.modes > pod_samples:
             raise TrainingInputError(
-                self.dataset.root, f"modes = {self.config.modes} exceeds the {len(self.train)} train samples"
+                self.dataset.root, f"modes = {self.config.modes} exceeds the {pod_samples} train samples of the POD"
             )
-        self.log(f"POD of {len(self.train)} train targets in L2(Ω)…")
-        basis, singular = weighted_basis(self.train_targets, self.mesh.nodal_volumes, max(CEILING_MODES))
+        targets = self.train_targets[:pod_samples]
+        self.log(f"POD of {len(targets)} of {len(self.train)} train targets in L2(Ω)…")
+        basis, singular = weighted_basis(targets, self.mesh.nodal_volumes, max(CEILING_MODES))
         test = self.dataset.load("test", self.config.subsets)
         test_targets = self._targets(test, "test")
         projection = project(test_targets, basis, self.mesh.nodal_volumes)
