@@ -60,8 +60,9 @@ fn linear_field(
     sample: &mut SampleRecord,
     direct: &AtomicUsize,
 ) -> Result<Vec<f32>, DatasetError> {
+    let prescribed = sample.prescribed();
     let mut points = InteractionPoints::default();
-    for (n, u) in sample.prescribed() {
+    for &(n, u) in &prescribed {
         points.push(n, mesh.positions[n as usize], u);
     }
     let mut field = vec![0.0f32; 3 * mesh.node_count()];
@@ -73,7 +74,7 @@ fn linear_field(
             .map_err(|e| solver_error(&e))?;
     } else {
         direct.fetch_add(1, Ordering::Relaxed);
-        let u = solve_dirichlet(mesh, &sample.prescribed()).map_err(|e| solver_error(&e))?;
+        let u = solve_dirichlet(mesh, &prescribed).map_err(|e| solver_error(&e))?;
         write_field(&mut field, &u);
         forces = nodal_forces(mesh, &u, &points.nodes).map_err(|e| solver_error(&e))?;
     }
@@ -123,10 +124,11 @@ pub fn generate_nonlinear(
     let mut generated = generate(mesh, info, dir, progress, |sample| {
         let started = std::time::Instant::now();
         let mut field = vec![f32::NAN; 3 * mesh.node_count()];
-        let record = match preloaded.grasp(&sample.prescribed()) {
+        let prescribed = sample.prescribed();
+        let record = match preloaded.grasp(&prescribed) {
             Ok(equilibrium) => {
                 write_field(&mut field, &equilibrium.displacement);
-                let held: Vec<u32> = sample.prescribed().iter().map(|&(n, _)| n).collect();
+                let held: Vec<u32> = prescribed.iter().map(|&(n, _)| n).collect();
                 sample.set_forces(|n| force_of(&held, &equilibrium.reactions, n));
                 SolveRecord {
                     stats: equilibrium.stats,

@@ -10,7 +10,7 @@ use tonic::metadata::MetadataMap;
 
 /// Requests admitted per compute thread by default. Each waits behind at most this many others per
 /// core: the Kelvinlet prior on the phantom costs ~0.2 ms, so an admitted request waits ~1 ms at
-/// most (README: Overload and deadlines).
+/// most (README, API: admission control).
 pub const PER_THREAD: usize = 4;
 
 /// How much before a call's deadline nak gives up on it, at most (see [`deadline`]).
