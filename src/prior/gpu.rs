@@ -7,7 +7,7 @@
 //! microseconds, less than one GPU round trip, and f32 on the GPU would cost accuracy.
 
 use std::sync::mpsc::{self, Receiver, Sender, SyncSender};
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, OnceLock};
 
 use wgpu::util::DeviceExt;
 
@@ -107,11 +107,19 @@ impl PartialEq for Resident {
     }
 }
 
+/// The process's one wgpu instance, never dropped. Dropping the last handle to it unloads the Vulkan
+/// driver (`dlclose`), but Mesa's software drivers (llvmpipe/lavapipe, and the LLVM inside them)
+/// register `atexit` destructors: a process whose GPU worker released the device just before `exit`
+/// then crashed in those handlers (seen in CI as a segfault after a successful `nak predict`).
+fn process_instance() -> &'static wgpu::Instance {
+    static INSTANCE: OnceLock<wgpu::Instance> = OnceLock::new();
+    INSTANCE.get_or_init(|| wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env()))
+}
+
 impl GpuPrior {
     /// Opens the first GPU adapter wgpu finds and uploads `clouds`; their indices identify them later.
     pub fn new(clouds: &[&NodeCloud]) -> Result<Arc<Self>, GpuError> {
-        let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
-        let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
+        let adapter = pollster::block_on(process_instance().request_adapter(&wgpu::RequestAdapterOptions {
             power_preference: wgpu::PowerPreference::HighPerformance,
             ..Default::default()
         }))
