@@ -9,7 +9,7 @@ use std::sync::Arc;
 
 use anyhow::Context;
 use clap::{Parser, Subcommand, ValueEnum};
-use nak::engine::{DeformationModel, Engine};
+use nak::engine::{DeformationModel, Engine, RefusedModel};
 use nak::fem::{GreenLinear, GreenLinearModel};
 use nak::mesh::{self, MeshSource, TetMesh};
 use nak::prior::PriorBackend;
@@ -261,11 +261,23 @@ fn build_engine(config: &ServeConfig) -> anyhow::Result<Engine> {
         load_shipped_models(&mut engine, &mesh, config.ort_dylib.as_deref())?;
     }
     for root in config.model_roots() {
-        let models = nak::model::load_all(&root, &mesh, config.ort_dylib.as_deref())
-            .with_context(|| format!("cannot load the models in {}", root.display()))?;
+        let models = nak::model::load_each(&root, &mesh, config.ort_dylib.as_deref())
+            .with_context(|| format!("cannot read the model directory {}", root.display()))?;
         for model in models {
-            info!(model = %model.info().name, from = %root.display(), "model loaded and warmed up");
-            engine.add_model(Arc::new(model));
+            match model {
+                Ok(model) => {
+                    info!(model = %model.info().name, from = %root.display(), "model loaded and warmed up");
+                    engine.add_model(Arc::new(model));
+                }
+                // One bad model must not take the others down: refuse it loudly and serve the rest.
+                Err(e) => {
+                    tracing::error!(model = %e.origin, "model refused, not served: {}", e.message);
+                    engine.refuse_model(RefusedModel {
+                        origin: e.origin,
+                        reason: e.message,
+                    });
+                }
+            }
         }
     }
     if config.green_linear {

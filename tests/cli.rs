@@ -1,17 +1,12 @@
 //! The `nak` binary: serve (with graceful shutdown on SIGTERM), predict and mesh info.
 
-use std::io::{BufRead, BufReader};
-use std::path::Path;
-use std::process::{Command, Stdio};
+mod common;
 
+use std::path::Path;
+
+use common::process::{ServeProcess, nak};
 use nak::proto::v1::deformation_client::DeformationClient;
 use nak::proto::v1::{Grasp, PredictRequest, Vec3};
-
-fn nak() -> Command {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_nak"));
-    c.env("RUST_BACKTRACE", "0").env("NO_COLOR", "1");
-    c
-}
 
 fn repo(path: &str) -> std::path::PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(path)
@@ -19,19 +14,10 @@ fn repo(path: &str) -> std::path::PathBuf {
 
 #[test]
 fn serve_answers_on_the_embedded_phantom_and_stops_cleanly_on_sigterm() {
-    let mut child = nak()
-        .args(["serve", "--listen", "127.0.0.1:0", "--log-format", "json"])
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut lines = BufReader::new(child.stderr.take().unwrap()).lines();
-    let address = loop {
-        let line = lines.next().expect("server exited before listening").unwrap();
-        let record: serde_json::Value = serde_json::from_str(&line).unwrap();
-        if record["fields"]["message"] == "listening" {
-            break record["fields"]["address"].as_str().unwrap().to_owned();
-        }
-    };
+    let mut serve = nak();
+    serve.arg("serve");
+    let server = ServeProcess::start(serve);
+    let address = server.address.clone();
     let runtime = tokio::runtime::Runtime::new().unwrap();
     let response = runtime.block_on(async {
         let mut client = DeformationClient::connect(format!("http://{address}")).await.unwrap();
@@ -60,13 +46,7 @@ fn serve_answers_on_the_embedded_phantom_and_stops_cleanly_on_sigterm() {
             .into_inner()
     });
     assert!(response.node_count > 9_500);
-    let status = Command::new("kill")
-        .args(["-TERM", &child.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(status.success());
-    let rest: Vec<String> = lines.map(|l| l.unwrap()).collect();
-    let exit = child.wait().unwrap();
+    let (exit, rest) = server.stop();
     assert!(exit.success(), "exit {exit:?}; log: {rest:?}");
     assert!(rest.iter().any(|l| l.contains("SIGTERM")), "{rest:?}");
     assert!(rest.iter().any(|l| l.contains("\"stopped\"")), "{rest:?}");

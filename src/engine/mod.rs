@@ -106,10 +106,19 @@ struct Scratch {
     point_forces: Vec<[f64; 3]>,
 }
 
+/// A model the server was asked to serve but could not load, and why (`GetStatus` lists them).
+#[derive(Debug, Clone, PartialEq)]
+pub struct RefusedModel {
+    /// The file or directory at fault.
+    pub origin: String,
+    pub reason: String,
+}
+
 pub struct Engine {
     mesh: Arc<TetMesh>,
     limits: Limits,
     models: BTreeMap<String, Arc<dyn DeformationModel>>,
+    refused: Vec<RefusedModel>,
     all_nodes: NodeCloud,
     surface_nodes: NodeCloud,
     scratch: Mutex<Vec<Scratch>>,
@@ -123,6 +132,7 @@ impl Engine {
         let kelvinlet: Arc<dyn DeformationModel> = Arc::new(KelvinletModel::new(&mesh));
         Self {
             models: BTreeMap::from([(KelvinletModel::NAME.to_owned(), kelvinlet)]),
+            refused: Vec::new(),
             mesh,
             limits,
             all_nodes,
@@ -171,6 +181,15 @@ impl Engine {
 
     pub fn models(&self) -> impl Iterator<Item = &ModelInfo> {
         self.models.values().map(|m| m.info())
+    }
+
+    /// Notes a model that could not be loaded; the others are served.
+    pub fn refuse_model(&mut self, refused: RefusedModel) {
+        self.refused.push(refused);
+    }
+
+    pub fn refused_models(&self) -> &[RefusedModel] {
+        &self.refused
     }
 
     /// Whether `name` (a mesh name or content hash) is the served mesh; empty always is.

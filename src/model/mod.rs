@@ -49,10 +49,20 @@ pub fn model_dirs(root: &Path) -> Result<Vec<PathBuf>, ModelLoadError> {
     Ok(dirs)
 }
 
-/// Loads every model under `root` for `mesh`; the first refusal stops the load with its reason.
-pub fn load_all(root: &Path, mesh: &TetMesh, ort_dylib: Option<&Path>) -> Result<Vec<OnnxModel>, ModelLoadError> {
-    model_dirs(root)?
+/// Loads every model under `root` for `mesh`, each on its own: a model that cannot be loaded is its
+/// error, so that a server can refuse it and serve the others. Fails only when `root` is unreadable.
+pub fn load_each(
+    root: &Path,
+    mesh: &TetMesh,
+    ort_dylib: Option<&Path>,
+) -> Result<Vec<Result<OnnxModel, ModelLoadError>>, ModelLoadError> {
+    Ok(model_dirs(root)?
         .iter()
         .map(|dir| OnnxModel::load(dir, mesh, ort_dylib))
-        .collect()
+        .collect())
+}
+
+/// Loads every model under `root` for `mesh`; the first refusal stops the load with its reason.
+pub fn load_all(root: &Path, mesh: &TetMesh, ort_dylib: Option<&Path>) -> Result<Vec<OnnxModel>, ModelLoadError> {
+    load_each(root, mesh, ort_dylib)?.into_iter().collect()
 }

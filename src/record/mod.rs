@@ -22,7 +22,7 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::{SyncSender, TrySendError};
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, OnceLock};
 use std::thread::JoinHandle;
 use std::time::{Duration, SystemTime};
 
@@ -82,7 +82,7 @@ pub enum RecordError {
         #[source]
         source: std::io::Error,
     },
-    #[error("{path}: MCAP: {source}")]
+    #[error("{path}: MCAP: {}", with_causes(source))]
     Mcap {
         path: String,
         #[source]
@@ -90,6 +90,18 @@ pub enum RecordError {
     },
     #[error("the recorder's writer thread panicked")]
     WriterPanicked,
+}
+
+/// An error and its causes, outermost first: mcap's I/O error alone says only "I/O error from
+/// writing", not "No space left on device".
+fn with_causes(error: &dyn std::error::Error) -> String {
+    let mut text = error.to_string();
+    let mut cause = error.source();
+    while let Some(e) = cause {
+        text.push_str(&format!(": {e}"));
+        cause = e.source();
+    }
+    text
 }
 
 /// One answered request.
@@ -109,13 +121,15 @@ pub struct Stats {
     pub dropped: AtomicU64,
     pub files: AtomicU64,
     pub bytes: AtomicU64,
+    /// Why the writer stopped, once it has.
+    pub stopped: OnceLock<String>,
 }
 
 pub struct Recorder {
     config: RecordConfig,
     queue: Mutex<Option<SyncSender<Exchange>>>,
     stats: Arc<Stats>,
-    writer: Mutex<Option<JoinHandle<Result<(), RecordError>>>>,
+    writer: Mutex<Option<JoinHandle<()>>>,
 }
 
 impl Recorder {
@@ -169,6 +183,7 @@ impl Recorder {
             dropped: self.stats.dropped.load(Ordering::Relaxed),
             files: self.stats.files.load(Ordering::Relaxed),
             bytes: self.stats.bytes.load(Ordering::Relaxed),
+            error: self.stats.stopped.get().cloned().unwrap_or_default(),
         }
     }
 
@@ -176,14 +191,16 @@ impl Recorder {
         self.stats.dropped.load(Ordering::Relaxed)
     }
 
-    /// Stops accepting exchanges, writes what is queued, and finishes the file (summary, indexes).
+    /// Stops accepting exchanges, writes what is queued, and finishes the file (summary, indexes). A
+    /// write failure is not returned here: it stopped the recording when it happened, was logged then,
+    /// and shows in [`Self::status`].
     pub fn close(&self) -> Result<(), RecordError> {
         if let Ok(mut queue) = self.queue.lock() {
             queue.take();
         }
         let handle = self.writer.lock().ok().and_then(|mut w| w.take());
         match handle {
-            Some(h) => h.join().map_err(|_| RecordError::WriterPanicked)?,
+            Some(h) => h.join().map_err(|_| RecordError::WriterPanicked),
             None => Ok(()),
         }
     }

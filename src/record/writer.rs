@@ -148,17 +148,26 @@ impl Writer {
         Ok(())
     }
 
-    /// Drains the queue until every sender is gone, then finishes the file.
-    pub(super) fn run(mut self, rx: Receiver<Exchange>) -> Result<(), RecordError> {
+    /// Drains the queue until every sender is gone, then finishes the file. A failure (disk full,
+    /// directory gone) stops recording, never serving: it is logged here, once, and kept for
+    /// `GetStatus`; the exchanges queued after it are counted as dropped.
+    pub(super) fn run(mut self, rx: Receiver<Exchange>) {
+        if let Err(e) = self.drain(&rx) {
+            tracing::error!(error = %e, "recording stopped; serving continues without it");
+            let _ = self.stats.stopped.set(e.to_string());
+            // What was queued is lost too; later exchanges find the queue closed and count themselves.
+            let queued = rx.try_iter().count() as u64;
+            self.stats.dropped.fetch_add(queued, Ordering::Relaxed);
+        }
+    }
+
+    fn drain(&mut self, rx: &Receiver<Exchange>) -> Result<(), RecordError> {
         let mut finished_bytes = 0u64;
         loop {
             match rx.recv_timeout(FLUSH_EVERY) {
-                Ok(exchange) => {
-                    if let Err(e) = self.write(&exchange) {
-                        tracing::error!(error = %e, "recording failed; stopping the recorder");
-                        return Err(e);
-                    }
-                }
+                Ok(exchange) => self.write(&exchange).inspect_err(|_| {
+                    self.stats.dropped.fetch_add(1, Ordering::Relaxed);
+                })?,
                 Err(RecvTimeoutError::Timeout) => {}
                 Err(RecvTimeoutError::Disconnected) => break,
             }

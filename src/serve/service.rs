@@ -2,6 +2,7 @@
 
 use std::pin::Pin;
 use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Instant, SystemTime};
 
 use tokio_stream::{Stream, StreamExt};
@@ -81,8 +82,10 @@ impl DeformationService {
         let engine = self.engine.clone();
         let admission = self.admission.clone();
         let waiting = Instant::now();
+        let computing = Arc::new(AtomicBool::new(false));
         // None: the deadline passed before the pool reached the request.
         let (tx, rx) = tokio::sync::oneshot::channel();
+        let started = computing.clone();
         rayon::spawn(move || {
             let _permit = permit;
             if tx.is_closed() {
@@ -91,15 +94,25 @@ impl DeformationService {
                 admission.count_abandoned();
                 let _ = tx.send(None);
             } else {
+                started.store(true, Ordering::Release);
                 let _ = tx.send(Some(engine.predict(&request)));
             }
         });
         let late = || {
             self.admission.count_expired();
-            Status::deadline_exceeded(format!(
-                "the deadline passed after {:.1} ms waiting for the compute pool; nothing was computed",
-                waiting.elapsed().as_secs_f64() * 1e3
-            ))
+            let elapsed_ms = waiting.elapsed().as_secs_f64() * 1e3;
+            if computing.load(Ordering::Acquire) {
+                // A model slower than its callers' deadlines (or hung): the answer is given on time,
+                // the computation finishes in the pool and keeps its place until then.
+                warn!(model = %message.model, elapsed_ms, "deadline passed while computing");
+                Status::deadline_exceeded(format!(
+                    "the deadline passed after {elapsed_ms:.1} ms while the model was still computing"
+                ))
+            } else {
+                Status::deadline_exceeded(format!(
+                    "the deadline passed after {elapsed_ms:.1} ms waiting for the compute pool; nothing was computed"
+                ))
+            }
         };
         let outcome = match deadline {
             Some(d) => tokio::time::timeout_at(d.into(), rx).await.map_err(|_| late())?,
@@ -142,6 +155,15 @@ impl Deformation for DeformationService {
             uptime_ms: self.started.elapsed().as_millis() as u64,
             recorder: Some(self.recorder.as_ref().map_or_else(Default::default, |r| r.status())),
             admission: Some(self.admission.status()),
+            refused_models: self
+                .engine
+                .refused_models()
+                .iter()
+                .map(|r| pb::RefusedModel {
+                    origin: r.origin.clone(),
+                    reason: r.reason.clone(),
+                })
+                .collect(),
         }))
     }
 

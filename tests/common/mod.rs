@@ -3,4 +3,5 @@
 
 pub mod models;
 pub mod msh_fixture;
+pub mod process;
 pub mod server;

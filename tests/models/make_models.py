@@ -21,7 +21,7 @@ of REDUCED_MODES modes:
 * reduced-folded         the same encoder with the basis folded into the graph: `displacement`
 
 (the three give the same field, up to f16 rounding), and tests/models/faulty/<case>/ models that must
-be refused or fail.
+be refused, fail, or run long.
 Run from the repository root after `cargo build`: python tests/models/make_models.py
 """
 
@@ -51,6 +51,8 @@ SCALE = {"position": [0.1] * 3, "displacement": [0.05] * 3, "active": [1.0], "pr
 # Interaction points: rest position (m) and prescribed displacement (m), scaled to order one.
 INTERACTION_SCALE = [0.1] * 3 + [0.05] * 3
 REDUCED_MODES = 12
+# Loop steps of the `slow` faulty model per request: seconds on any machine.
+SLOW_ITERATIONS = 3_000_000
 # Residuals of a few millimetres: the last layer is scaled so outputs are mm-sized.
 OUTPUT_SCALE = 0.004
 
@@ -209,6 +211,51 @@ def fails_when_grasped(g: GraphBuilder, out: str) -> str:
     return g.op("Add", [out, picked])
 
 
+def slow_when_grasped(g: GraphBuilder, out: str) -> str:
+    """Adds zero to `out` after a Loop of SLOW_ITERATIONS tiny steps once any node is active: warm-up
+    (nothing grasped) is instant, every real request takes seconds (a model that runs long)."""
+    active = g.op(
+        "Slice",
+        [
+            "features",
+            g.constant(np.array([6], np.int64)),
+            g.constant(np.array([7], np.int64)),
+            g.constant(np.array([2], np.int64)),
+        ],
+    )
+    any_active = g.op("ReduceMax", [active], keepdims=0)
+    trips = g.op(
+        "Cast", [g.op("Mul", [any_active, g.constant(np.array(SLOW_ITERATIONS, np.float32))])], to=TensorProto.INT64
+    )
+    body = helper.make_graph(
+        [
+            helper.make_node("Identity", ["cond_in"], ["cond_out"]),
+            helper.make_node("Add", ["count_in", "one"], ["count_out"]),
+        ],
+        "spin",
+        [
+            helper.make_tensor_value_info("iteration", TensorProto.INT64, []),
+            helper.make_tensor_value_info("cond_in", TensorProto.BOOL, []),
+            helper.make_tensor_value_info("count_in", TensorProto.FLOAT, []),
+        ],
+        [
+            helper.make_tensor_value_info("cond_out", TensorProto.BOOL, []),
+            helper.make_tensor_value_info("count_out", TensorProto.FLOAT, []),
+        ],
+        [numpy_helper.from_array(np.array(1.0, np.float32), "one")],
+    )
+    count = g.name("count")
+    g.nodes.append(
+        helper.make_node(
+            "Loop",
+            [trips, g.constant(np.array(True)), g.constant(np.array(0.0, np.float32))],
+            [count],
+            body=body,
+        )
+    )
+    return g.op("Add", [out, g.op("Mul", [count, g.constant(np.array(0.0, np.float32))])])
+
+
 def write_model(
     directory: Path,
     body: str,
@@ -220,11 +267,14 @@ def write_model(
     input_name: str = "features",
     output_dims: tuple[str | int, str | int, int] = ("batch", "nodes", 3),
     faulty: bool = False,
+    slow: bool = False,
 ) -> None:
     g = GraphBuilder(seed)
     out = mlp(g, channels, int(output_dims[2])) if body == "mlp" else pointnet(g, channels)
     if faulty:
         out = fails_when_grasped(g, out)
+    if slow:
+        out = slow_when_grasped(g, out)
     g.nodes.append(helper.make_node("Identity", [out], ["displacement"]))
     c = len(feature_columns(channels))
     graph = helper.make_graph(
@@ -309,6 +359,16 @@ def main() -> None:
         11,
         "fails on any request with a grasp",
         faulty=True,
+    )
+    write_model(
+        faulty / "slow" / "slow",
+        "mlp",
+        BASE_CHANNELS,
+        "residual",
+        coarse,
+        14,
+        "spins for seconds on any request with a grasp",
+        slow=True,
     )
     write_model(
         faulty / "wrong-input-name" / "wrong-input-name",
