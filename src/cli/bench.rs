@@ -38,6 +38,9 @@ pub struct BenchArgs {
     /// Distinct requests drawn and cycled through.
     #[arg(long, default_value_t = 1024)]
     distinct_requests: usize,
+    /// Also report percentiles per interval of this length ("1m", "10s"): latency over time.
+    #[arg(long, value_parser = parse_duration)]
+    interval: Option<Duration>,
     /// Write the report as JSON here.
     #[arg(long)]
     output: Option<PathBuf>,
@@ -93,6 +96,7 @@ pub fn run(args: BenchArgs) -> anyhow::Result<()> {
         graspers: args.graspers as usize,
         seed: args.seed,
         distinct_requests: args.distinct_requests,
+        interval: args.interval,
     };
     let total = (config.warmup + config.duration).as_millis() as u64;
     let bar = ProgressBar::new(total).with_style(

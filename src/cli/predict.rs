@@ -1,10 +1,43 @@
 //! `nak predict`: one offline evaluation through the serving engine, written as .npy.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
 use nak::engine::{Engine, Grasp, Prediction, Request, Selection};
 use serde::Deserialize;
+
+use super::engine::ModelArgs;
+
+#[derive(clap::Args)]
+pub struct PredictArgs {
+    /// A model directory or an .msh file [default: the embedded phantom liver].
+    #[arg(long)]
+    mesh: Option<PathBuf>,
+    /// Model to evaluate.
+    #[arg(long, default_value = "kelvinlet")]
+    model: String,
+    /// JSON: {"grasps": [{"nodes": [...], "displacement": [dx, dy, dz]}, {"point": [x, y, z],
+    /// "radius": r, "displacement": [...]}]}, metres.
+    #[arg(long)]
+    grasps: PathBuf,
+    /// Output .npy, float32 (N, 3).
+    #[arg(long)]
+    out: PathBuf,
+    /// Write the surface nodes only (Mesh.surface_nodes order) instead of every node.
+    #[arg(long)]
+    surface_only: bool,
+    #[command(flatten)]
+    models: ModelArgs,
+}
+
+pub fn run(args: PredictArgs) -> anyhow::Result<()> {
+    let engine = args.models.engine(args.mesh, &args.model)?;
+    let grasps = read_grasps(&args.grasps)?;
+    let prediction = evaluate(&engine, &args.model, grasps, args.surface_only)?;
+    write_npy(&args.out, &prediction.displacements)?;
+    print!("{}", summary(&prediction, &args.out));
+    Ok(())
+}
 
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -44,7 +77,7 @@ pub fn read_grasps(path: &Path) -> anyhow::Result<Vec<Grasp>> {
         .collect())
 }
 
-pub fn run(engine: &Engine, model: &str, grasps: Vec<Grasp>, surface_only: bool) -> anyhow::Result<Prediction> {
+pub fn evaluate(engine: &Engine, model: &str, grasps: Vec<Grasp>, surface_only: bool) -> anyhow::Result<Prediction> {
     let request = Request {
         model: model.to_owned(),
         grasps,

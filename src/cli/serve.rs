@@ -1,0 +1,136 @@
+//! `nak serve`: the gRPC server, configured from flags over an optional `serve.toml`, recording to
+//! MCAP when asked.
+
+use std::collections::BTreeMap;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use anyhow::Context;
+use nak::engine::Engine;
+use nak::record::{Payload, Recorder};
+use nak::serve::{self, ServeConfig};
+use tracing::info;
+
+use super::engine::{ModelArgs, build_engine};
+
+#[derive(clap::Args)]
+pub struct ServeArgs {
+    /// TOML file with any of: mesh, models, ort_dylib, listen, max_displacement_mm,
+    /// max_interaction_points, max_message_bytes, max_in_flight. Flags override it.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// A model directory (its default mesh) or an .msh file with model.toml beside it
+    /// [default: the embedded phantom liver].
+    #[arg(long)]
+    mesh: Option<PathBuf>,
+    /// Address to listen on [default: 127.0.0.1:50051; port 0 picks a free port].
+    #[arg(long)]
+    listen: Option<SocketAddr>,
+    /// Largest grasp displacement accepted, millimetres [default: 200].
+    #[arg(long)]
+    max_displacement_mm: Option<f64>,
+    /// Most interaction points (grasped nodes) per request [default: 256].
+    #[arg(long)]
+    max_interaction_points: Option<usize>,
+    /// Largest request message, bytes [default: 1048576].
+    #[arg(long)]
+    max_message_bytes: Option<usize>,
+    /// Most requests computed or waiting for the compute pool at once; more are refused at once
+    /// with RESOURCE_EXHAUSTED [default: 4 per core].
+    #[arg(long)]
+    max_in_flight: Option<usize>,
+    #[command(flatten)]
+    models: ModelArgs,
+    /// Record every exchange to MCAP files in this directory (open them in Foxglove or with `nak replay`).
+    #[arg(long, value_name = "DIR")]
+    record: Option<PathBuf>,
+    /// Displacements written per answer [default: surface].
+    #[arg(long, value_enum)]
+    record_payload: Option<Payload>,
+    /// Start a new recording file after this many MiB [default: 1024].
+    #[arg(long)]
+    record_rotate_mb: Option<u64>,
+    /// Start a new recording file after this many minutes [default: 60].
+    #[arg(long)]
+    record_rotate_minutes: Option<u64>,
+    /// Exchanges queued for the recorder before new ones are dropped (never delayed) [default: 4096].
+    #[arg(long)]
+    record_queue: Option<usize>,
+    /// Most deformed-surface point clouds per second on the Foxglove channel [default: 30].
+    #[arg(long)]
+    record_scene_hz: Option<f64>,
+}
+
+pub fn run(args: ServeArgs) -> anyhow::Result<()> {
+    let config = serve_config(args)?;
+    let engine = Arc::new(build_engine(&config)?);
+    let runtime = tokio::runtime::Runtime::new().context("cannot start the async runtime")?;
+    runtime.block_on(async {
+        let listener = tokio::net::TcpListener::bind(config.listen)
+            .await
+            .with_context(|| format!("cannot listen on {}", config.listen))?;
+        // Scripts and tests read this line to find a port chosen with --listen 127.0.0.1:0.
+        info!(address = %listener.local_addr()?, "listening");
+        let recorder = start_recorder(&config, &engine)?;
+        let intake = serve::Intake {
+            max_message_bytes: config.max_message_bytes,
+            max_in_flight: config.max_in_flight(),
+        };
+        serve::run(engine, listener, intake, recorder.clone(), serve::shutdown_signal()).await?;
+        if let Some(recorder) = recorder {
+            recorder.close().context("the recording was not finished cleanly")?;
+        }
+        anyhow::Ok(())
+    })
+}
+
+fn serve_config(args: ServeArgs) -> anyhow::Result<ServeConfig> {
+    let mut config = match &args.config {
+        Some(path) => {
+            let text = std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+            toml::from_str(&text).with_context(|| format!("{}: invalid serve configuration", path.display()))?
+        }
+        None => ServeConfig::default(),
+    };
+    config.mesh = args.mesh.or(config.mesh);
+    config.listen = args.listen.unwrap_or(config.listen);
+    config.max_displacement_mm = args.max_displacement_mm.unwrap_or(config.max_displacement_mm);
+    config.max_interaction_points = args.max_interaction_points.unwrap_or(config.max_interaction_points);
+    config.max_message_bytes = args.max_message_bytes.unwrap_or(config.max_message_bytes);
+    config.max_in_flight = args.max_in_flight.unwrap_or(config.max_in_flight);
+    config.models.extend(args.models.dirs);
+    config.green_linear |= args.models.green_linear;
+    config.cache_dir = args.models.cache_dir.or(config.cache_dir);
+    config.record = args.record.or(config.record);
+    config.record_payload = args.record_payload.unwrap_or(config.record_payload);
+    config.record_rotate_mb = args.record_rotate_mb.unwrap_or(config.record_rotate_mb);
+    config.record_rotate_minutes = args.record_rotate_minutes.unwrap_or(config.record_rotate_minutes);
+    config.record_queue = args.record_queue.unwrap_or(config.record_queue);
+    config.record_scene_hz = args.record_scene_hz.unwrap_or(config.record_scene_hz);
+    config.ort_dylib = args.models.ort_dylib.or(config.ort_dylib);
+    config.prior_backend = args.models.prior_backend.unwrap_or(config.prior_backend);
+    Ok(config)
+}
+
+/// The MCAP recorder, when `--record` is given; its metadata describes the mesh, models and settings.
+fn start_recorder(config: &ServeConfig, engine: &Engine) -> anyhow::Result<Option<Arc<Recorder>>> {
+    let Some(recording) = config.recording() else {
+        return Ok(None);
+    };
+    let mesh = engine.mesh().clone();
+    let models: BTreeMap<&str, &BTreeMap<String, String>> =
+        engine.models().map(|m| (m.name.as_str(), &m.metadata)).collect();
+    let metadata = BTreeMap::from([
+        ("server_version".to_owned(), env!("CARGO_PKG_VERSION").to_owned()),
+        ("mesh_name".to_owned(), mesh.config.name.clone()),
+        ("mesh_hash".to_owned(), mesh.content_hash.clone()),
+        ("mesh_nodes".to_owned(), mesh.node_count().to_string()),
+        ("models".to_owned(), serde_json::to_string(&models)?),
+        ("config".to_owned(), serde_json::to_string(config)?),
+    ]);
+    let directory = recording.directory.clone();
+    let recorder = Recorder::start(recording, mesh, metadata)
+        .with_context(|| format!("cannot record to {}", directory.display()))?;
+    Ok(Some(Arc::new(recorder)))
+}
