@@ -5,8 +5,21 @@ mod common;
 
 use std::time::Duration;
 
+use common::models::coarse;
 use common::server::TestServer;
 use nak::bench::{self, BenchConfig, Mode};
+use nak::engine::{Engine, Limits};
+use nak::serve::Intake;
+
+/// A server that admits every request: these tests count what the tool sends and receives, on a
+/// debug build that a busy machine may slow past the default admission bound.
+async fn unbounded_server() -> TestServer {
+    let intake = Intake {
+        max_message_bytes: 1 << 20,
+        max_in_flight: 100_000,
+    };
+    TestServer::with_intake(Engine::new(coarse(), Limits::default()), intake).await
+}
 
 fn config(server: &TestServer, mode: Mode, rate: Option<f64>) -> BenchConfig {
     BenchConfig {
@@ -20,12 +33,13 @@ fn config(server: &TestServer, mode: Mode, rate: Option<f64>) -> BenchConfig {
         graspers: 2,
         seed: 3,
         distinct_requests: 64,
+        interval: None,
     }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn open_loop_sends_exactly_the_offered_load_in_both_modes() {
-    let server = TestServer::default().await;
+    let server = unbounded_server().await;
     for mode in [Mode::Unary, Mode::Stream] {
         let report = bench::run(&config(&server, mode, Some(200.0)), |_| {}).await.unwrap();
         // 200/s over 0.6 s: requests due in the measured window, each answered.
@@ -40,7 +54,7 @@ async fn open_loop_sends_exactly_the_offered_load_in_both_modes() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn closed_loop_runs_for_the_duration_in_both_modes() {
-    let server = TestServer::default().await;
+    let server = unbounded_server().await;
     for mode in [Mode::Unary, Mode::Stream] {
         let ticks = std::sync::atomic::AtomicUsize::new(0);
         let report = bench::run(&config(&server, mode, None), |_| {
@@ -63,7 +77,7 @@ async fn closed_loop_runs_for_the_duration_in_both_modes() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn errors_are_counted_by_status_code() {
-    let server = TestServer::default().await;
+    let server = unbounded_server().await;
     for mode in [Mode::Unary, Mode::Stream] {
         let mut c = config(&server, mode, Some(100.0));
         c.model = "no-such-model".into();
@@ -75,7 +89,33 @@ async fn errors_are_counted_by_status_code() {
             report.errors
         );
         assert!(report.requests > 50);
+        // Every outcome was a refusal: timed as such, and nothing as an answer.
+        let refused = report.refused_us.unwrap();
+        assert_eq!(refused.max, report.latency_us.max);
+        assert_eq!(report.answered_us.max, 0.0);
     }
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn intervals_split_the_measured_window() {
+    let server = unbounded_server().await;
+    let mut c = config(&server, Mode::Unary, Some(200.0));
+    c.interval = Some(Duration::from_millis(200));
+    let report = bench::run(&c, |_| {}).await.unwrap();
+    let starts: Vec<f64> = report.intervals.iter().map(|i| i.start_s).collect();
+    assert_eq!(starts, [0.0, 0.2, 0.4]);
+    assert_eq!(
+        report.intervals.iter().map(|i| i.requests).sum::<u64>(),
+        report.requests
+    );
+    assert!(
+        report
+            .intervals
+            .iter()
+            .all(|i| i.refused == 0 && i.latency_us.p99 > 0.0)
+    );
+    assert!(report.refused_us.is_none());
     server.stop().await;
 }
 
@@ -92,6 +132,7 @@ async fn an_unreachable_target_is_a_clear_error() {
         graspers: 1,
         seed: 0,
         distinct_requests: 1,
+        interval: None,
     };
     let err = bench::run(&c, |_| {}).await.unwrap_err().to_string();
     assert!(err.contains("cannot connect to http://127.0.0.1:1"), "{err}");

@@ -1,9 +1,11 @@
 //! `nak bench`: a latency load tester for nak servers.
 //!
 //! Closed loop (`rate = None`): each of `concurrency` workers sends its next request as soon as the
-//! last one is answered. Open loop (`rate = Some(r)`): requests are due at a constant rate, and latency
-//! is measured from when a request was *due*, not when it went out, so a server that falls behind
-//! shows its queueing instead of hiding it (coordinated omission). Requests are drawn from the paper's
+//! last one is answered. Open loop (`rate = Some(r)`): requests are due at a constant rate and sent
+//! when due whether or not earlier ones were answered (unary calls each on their own HTTP/2 stream),
+//! and latency is measured from when a request was *due*, not when it went out, so a server that
+//! falls behind shows its queueing instead of hiding it (coordinated omission). Answers and refusals
+//! are timed apart: under overload, how fast a refusal comes matters as much as an answer. Requests are drawn from the paper's
 //! distribution p over the mesh the server reports, reproducibly from the seed.
 
 mod report;
@@ -18,7 +20,7 @@ use hdrhistogram::Histogram;
 use tokio::time::Instant;
 use tonic::transport::{Channel, Endpoint};
 
-pub use report::{Percentiles, Report};
+pub use report::{Interval, Percentiles, Report};
 pub use requests::{RequestsError, draw, sampler_for};
 
 use crate::proto::v1::PredictRequest;
@@ -47,6 +49,8 @@ pub struct BenchConfig {
     pub seed: u64,
     /// Distinct requests drawn (cycled through).
     pub distinct_requests: usize,
+    /// Percentiles also per interval of this length (latency over time, for soak tests).
+    pub interval: Option<Duration>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -78,10 +82,25 @@ pub struct Progress {
 struct Tally {
     window: (Instant, Instant),
     latency: Mutex<Histogram<u64>>,
+    answered: Mutex<Histogram<u64>>,
+    refused: Mutex<Histogram<u64>>,
     server: Mutex<Histogram<u64>>,
     errors: Mutex<BTreeMap<String, u64>>,
+    intervals: Option<Intervals>,
     completed: AtomicU64,
     failed: AtomicU64,
+}
+
+/// Outcomes per interval of the measured window (`--interval`).
+struct Intervals {
+    length: Duration,
+    slots: Mutex<Vec<Slot>>,
+}
+
+/// One interval's latencies, every outcome, and how many were refusals.
+struct Slot {
+    latency: Histogram<u64>,
+    refused: u64,
 }
 
 /// 1 µs to 100 s at 3 significant digits.
@@ -90,12 +109,29 @@ fn histogram() -> Result<Histogram<u64>, BenchError> {
 }
 
 impl Tally {
-    fn new(window: (Instant, Instant)) -> Result<Self, BenchError> {
+    fn new(window: (Instant, Instant), interval: Option<Duration>) -> Result<Self, BenchError> {
+        let intervals = match interval {
+            Some(length) if length.is_zero() => return Err(BenchError::Config("the interval must be positive".into())),
+            Some(length) => {
+                let count = (window.1 - window.0).as_secs_f64() / length.as_secs_f64();
+                let slots = (0..count.ceil() as usize)
+                    .map(|_| histogram().map(|latency| Slot { latency, refused: 0 }))
+                    .collect::<Result<_, _>>()?;
+                Some(Intervals {
+                    length,
+                    slots: Mutex::new(slots),
+                })
+            }
+            None => None,
+        };
         Ok(Self {
             window,
             latency: Mutex::new(histogram()?),
+            answered: Mutex::new(histogram()?),
+            refused: Mutex::new(histogram()?),
             server: Mutex::new(histogram()?),
             errors: Mutex::new(BTreeMap::new()),
+            intervals,
             completed: AtomicU64::new(0),
             failed: AtomicU64::new(0),
         })
@@ -115,23 +151,55 @@ impl Tally {
             return;
         }
         let micros = due.elapsed().as_micros().max(1) as u64;
-        if let Ok(mut h) = self.latency.lock() {
-            h.saturating_record(micros);
-        }
+        let record = |h: &Mutex<Histogram<u64>>, value: u64| {
+            if let Ok(mut h) = h.lock() {
+                h.saturating_record(value);
+            }
+        };
+        record(&self.latency, micros);
         self.completed.fetch_add(1, Ordering::Relaxed);
+        if let Some(intervals) = &self.intervals {
+            let index = ((due - self.window.0).as_secs_f64() / intervals.length.as_secs_f64()) as usize;
+            if let Ok(mut slots) = intervals.slots.lock()
+                && let Some(slot) = slots.get_mut(index)
+            {
+                slot.latency.saturating_record(micros);
+                slot.refused += u64::from(outcome.is_err());
+            }
+        }
         match outcome {
             Ok(server_us) => {
-                if let Ok(mut h) = self.server.lock() {
-                    h.saturating_record(server_us.max(1.0) as u64);
-                }
+                record(&self.answered, micros);
+                record(&self.server, server_us.max(1.0) as u64);
             }
             Err(code) => {
+                record(&self.refused, micros);
                 self.failed.fetch_add(1, Ordering::Relaxed);
                 if let Ok(mut errors) = self.errors.lock() {
                     *errors.entry(code).or_default() += 1;
                 }
             }
         }
+    }
+
+    /// Percentiles per interval, in order.
+    fn intervals(&self) -> Vec<Interval> {
+        let Some(intervals) = &self.intervals else {
+            return Vec::new();
+        };
+        let Ok(slots) = intervals.slots.lock() else {
+            return Vec::new();
+        };
+        slots
+            .iter()
+            .enumerate()
+            .map(|(i, slot)| Interval {
+                start_s: i as f64 * intervals.length.as_secs_f64(),
+                requests: slot.latency.len(),
+                refused: slot.refused,
+                latency_us: Percentiles::of(&slot.latency),
+            })
+            .collect()
     }
 
     fn progress(&self, start: Instant, total: Duration) -> Progress {
@@ -204,7 +272,7 @@ pub async fn run(config: &BenchConfig, progress: impl Fn(Progress)) -> Result<Re
     let start = Instant::now() + Duration::from_millis(50);
     let measure_from = start + config.warmup;
     let end = measure_from + config.duration;
-    let tally = Arc::new(Tally::new((measure_from, end))?);
+    let tally = Arc::new(Tally::new((measure_from, end), config.interval)?);
     let counter = Arc::new(AtomicU64::new(0));
     let mut pacer_queues = Vec::new();
     let mut workers = tokio::task::JoinSet::new();
@@ -242,6 +310,8 @@ pub async fn run(config: &BenchConfig, progress: impl Fn(Progress)) -> Result<Re
     progress(tally.progress(start, total));
 
     let latency = Tally::snapshot(&tally.latency)?;
+    let answered = Tally::snapshot(&tally.answered)?;
+    let refused = Tally::snapshot(&tally.refused)?;
     let server = Tally::snapshot(&tally.server)?;
     let requests = latency.len();
     Ok(Report {
@@ -259,8 +329,11 @@ pub async fn run(config: &BenchConfig, progress: impl Fn(Progress)) -> Result<Re
         requests,
         throughput_rps: requests as f64 / config.duration.as_secs_f64(),
         latency_us: Percentiles::of(&latency),
+        answered_us: Percentiles::of(&answered),
+        refused_us: (!refused.is_empty()).then(|| Percentiles::of(&refused)),
         server_us: Percentiles::of(&server),
         errors: tally.errors.lock().map(|e| e.clone()).unwrap_or_default(),
+        intervals: tally.intervals(),
     })
 }
 
@@ -317,14 +390,29 @@ impl Job {
         }
     }
 
+    /// Closed loop: one call at a time. Open loop: each call when due, on its own HTTP/2 stream of
+    /// the worker's connection, however many are still unanswered.
     async fn unary(mut self) {
+        let open_loop = self.due.is_some();
+        let mut unanswered = tokio::task::JoinSet::new();
         while let Some((k, due)) = self.next().await {
-            let outcome = match self.client.predict(request(&self.pool, k)).await {
-                Ok(r) => Ok(r.into_inner().timing.map_or(0.0, |t| t.total_us)),
-                Err(status) => Err(code_name(status.code())),
-            };
-            self.tally.record(due, outcome);
+            let call = Self::call(self.client.clone(), request(&self.pool, k), due, self.tally.clone());
+            if open_loop {
+                unanswered.spawn(call);
+                while unanswered.try_join_next().is_some() {}
+            } else {
+                call.await;
+            }
         }
+        while unanswered.join_next().await.is_some() {}
+    }
+
+    async fn call(mut client: DeformationClient<Channel>, request: PredictRequest, due: Instant, tally: Arc<Tally>) {
+        let outcome = match client.predict(request).await {
+            Ok(r) => Ok(r.into_inner().timing.map_or(0.0, |t| t.total_us)),
+            Err(status) => Err(code_name(status.code())),
+        };
+        tally.record(due, outcome);
     }
 
     /// One stream: a sender task sends requests when due (open loop) or when the previous answer

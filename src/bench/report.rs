@@ -30,6 +30,17 @@ impl Percentiles {
     }
 }
 
+/// One interval of the measured window (`nak bench --interval`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Interval {
+    /// From the start of the measured window.
+    pub start_s: f64,
+    /// Requests due in it and answered or refused.
+    pub requests: u64,
+    pub refused: u64,
+    pub latency_us: Percentiles,
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Report {
     pub target: String,
@@ -44,12 +55,19 @@ pub struct Report {
     /// Answers received in the measured window (errors included).
     pub requests: u64,
     pub throughput_rps: f64,
-    /// From the intended send time (open loop) or the actual one (closed loop) to the answer.
+    /// From the intended send time (open loop) or the actual one (closed loop) to the answer or
+    /// refusal, over every outcome.
     pub latency_us: Percentiles,
+    /// The same, for the successful answers only.
+    pub answered_us: Percentiles,
+    /// The same, for the refusals and errors only; `None` when there were none.
+    pub refused_us: Option<Percentiles>,
     /// The server's own `Timing.total_us`, for the successful answers.
     pub server_us: Percentiles,
     /// By gRPC status code name.
     pub errors: BTreeMap<String, u64>,
+    /// Per `--interval`, in order; empty without it.
+    pub intervals: Vec<Interval>,
 }
 
 impl Report {
@@ -68,10 +86,27 @@ impl Report {
                 .collect::<Vec<_>>()
                 .join(", ")
         };
+        let split = match &self.refused_us {
+            Some(r) => format!(
+                "\n  answered  p50 {:.0}  p99 {:.0}  max {:.0}\n  refused   p50 {:.0}  p99 {:.0}  max {:.0}",
+                self.answered_us.p50, self.answered_us.p99, self.answered_us.max, r.p50, r.p99, r.max
+            ),
+            None => String::new(),
+        };
+        let intervals: String = self
+            .intervals
+            .iter()
+            .map(|i| {
+                format!(
+                    "\n  from {:>6.0} s  {:>8} requests  {:>6} refused  p50 {:.0}  p99 {:.0}",
+                    i.start_s, i.requests, i.refused, i.latency_us.p50, i.latency_us.p99
+                )
+            })
+            .collect();
         format!(
             "target      {}\nmodel       {} ({}, {} grasper(s), concurrency {}, offered {})\n\
              requests    {} in {:.1} s = {:.0}/s\n\
-             latency µs  p50 {:.0}  p90 {:.0}  p99 {:.0}  p99.9 {:.0}  max {:.0}  mean {:.0}\n\
+             latency µs  p50 {:.0}  p90 {:.0}  p99 {:.0}  p99.9 {:.0}  max {:.0}  mean {:.0}{split}{intervals}\n\
              server µs   p50 {:.0}  p99 {:.0}\n\
              errors      {}",
             self.target,
