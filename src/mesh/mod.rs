@@ -168,6 +168,7 @@ impl TetMesh {
         };
         let positions = file.node_coords.clone();
 
+        check_finite_positions(&file, origin)?;
         check_distinct_positions(&file, origin)?;
         let (tets, tet_tags, tet_region, mut regions) = volume_elements(&file, origin, &resolve)?;
         let tet_volumes = check_volumes(&tets, &tet_tags, &positions, origin)?;
@@ -316,6 +317,15 @@ fn check_volumes(tets: &[[u32; 4]], tags: &[u64], positions: &[Vec3], origin: &s
         .iter()
         .map(|t| tet_volume(t.map(|n| positions[n as usize])))
         .collect();
+    // Finite coordinates can still overflow a volume (found by fuzzing: 1e300 m), and a NaN volume
+    // passes every comparison below.
+    if let Some(i) = volumes.iter().position(|v| !v.is_finite()) {
+        return Err(MeshError::Parse {
+            path: origin.to_owned(),
+            location: format!("element {}", tags[i]),
+            message: "its volume overflows: the node coordinates are far too large for metres".into(),
+        });
+    }
     let mean = volumes.iter().map(|v| v.abs()).sum::<f64>() / volumes.len() as f64;
     let describe = |bad: &[usize]| {
         bad.iter()
@@ -352,6 +362,18 @@ fn check_volumes(tets: &[[u32; 4]], tags: &[u64], positions: &[Vec3], origin: &s
 }
 
 /// Coincident nodes mean regions were meshed separately: their interfaces would not be shared.
+/// NaN or infinite coordinates pass every comparison-based check after them (found by fuzzing).
+fn check_finite_positions(file: &msh::MshFile, origin: &str) -> Result<(), MeshError> {
+    match file.node_coords.iter().position(|p| p.iter().any(|c| !c.is_finite())) {
+        None => Ok(()),
+        Some(i) => Err(MeshError::Parse {
+            path: origin.to_owned(),
+            location: format!("node {}", file.node_tags[i]),
+            message: format!("coordinates {:?} are not finite numbers", file.node_coords[i]),
+        }),
+    }
+}
+
 fn check_distinct_positions(file: &msh::MshFile, origin: &str) -> Result<(), MeshError> {
     let mut order: Vec<usize> = (0..file.node_coords.len()).collect();
     let key = |i: usize| file.node_coords[i].map(f64::to_bits);

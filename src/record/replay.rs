@@ -1,10 +1,12 @@
 //! Reading recordings back: the exchanges of an MCAP file, complete or cut short by a hard kill.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
 
-use mcap::read::Options;
-use prost::Message;
+use mcap::McapResult;
+use mcap::records::Record;
+use mcap::sans_io::linear_reader::{LinearReadEvent, LinearReader, LinearReaderOptions};
+use prost::Message as _;
 
 use super::{REQUESTS, RESPONSES};
 use crate::proto::v1 as pb;
@@ -58,43 +60,108 @@ pub fn read(path: &Path) -> Result<Recording, ReadError> {
         path: origin.clone(),
         source,
     })?;
-    let stream = mcap::MessageStream::new_with_options(&bytes, Options::IgnoreEndMagic.into()).map_err(|source| {
-        ReadError::Mcap {
-            path: origin.clone(),
-            source,
+    read_bytes(&bytes, &origin)
+}
+
+/// The longest record read, 256 MiB: far beyond any exchange nak records (a full answer on a
+/// million-node mesh is 12 MB), and a bound that mcap's own message stream lacks: inside a chunk it
+/// reserves whatever length a record claims, so a corrupt length aborted the process on allocation
+/// (found by fuzzing: 261 GB).
+const MAX_RECORD_BYTES: usize = 1 << 28;
+
+/// The records of an MCAP file, chunks unpacked, each at most [`MAX_RECORD_BYTES`] long.
+struct Records<'a> {
+    reader: LinearReader,
+    rest: &'a [u8],
+}
+
+impl<'a> Records<'a> {
+    fn new(bytes: &'a [u8]) -> Self {
+        let options = LinearReaderOptions::default()
+            .with_skip_end_magic(true)
+            .with_record_length_limit(MAX_RECORD_BYTES);
+        Self {
+            reader: LinearReader::new_with_options(options),
+            rest: bytes,
         }
-    })?;
+    }
+}
+
+impl Iterator for Records<'_> {
+    type Item = McapResult<Record<'static>>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        while let Some(event) = self.reader.next_event() {
+            match event {
+                Ok(LinearReadEvent::ReadRequest(wanted)) => {
+                    let n = wanted.min(self.rest.len());
+                    self.reader.insert(n).copy_from_slice(&self.rest[..n]);
+                    self.reader.notify_read(n);
+                    self.rest = &self.rest[n..];
+                }
+                Ok(LinearReadEvent::Record { data, opcode }) => {
+                    return Some(mcap::parse_record(opcode, data).map(Record::into_owned));
+                }
+                Err(e) => return Some(Err(e)),
+            }
+        }
+        None
+    }
+}
+
+/// [`read`] for a recording already in memory; `origin` names it in errors.
+pub fn read_bytes(bytes: &[u8], origin: &str) -> Result<Recording, ReadError> {
+    let origin = origin.to_owned();
+    let mut topics: HashMap<u16, String> = HashMap::new();
     let mut exchanges: BTreeMap<u32, Recorded> = BTreeMap::new();
     let mut truncated = None;
-    for message in stream {
-        let message = match message {
-            Ok(m) => m,
+    for (index, record) in Records::new(bytes).enumerate() {
+        let record = match record {
+            Ok(r) => r,
+            // Not even a header: this is not a recording.
+            Err(source) if index == 0 => {
+                return Err(ReadError::Mcap {
+                    path: origin.clone(),
+                    source,
+                });
+            }
             Err(e) => {
                 truncated = Some(e.to_string());
                 break;
             }
         };
+        let (header, data) = match record {
+            Record::Channel(channel) => {
+                topics.insert(channel.id, channel.topic);
+                continue;
+            }
+            Record::Message { header, data } => (header, data),
+            // The summary after it repeats what was read; a file cut short has none.
+            Record::DataEnd(_) => break,
+            _ => continue,
+        };
+        let topic = topics.get(&header.channel_id).map_or("", String::as_str);
         let decode_error = |source| ReadError::Decode {
             path: origin.clone(),
-            sequence: message.sequence,
-            topic: message.channel.topic.clone(),
+            sequence: header.sequence,
+            topic: topic.to_owned(),
             source,
         };
-        match message.channel.topic.as_str() {
+        match topic {
             REQUESTS => {
-                let request = pb::PredictRequest::decode(&message.data[..]).map_err(decode_error)?;
+                let request = pb::PredictRequest::decode(&data[..]).map_err(decode_error)?;
                 exchanges.insert(
-                    message.sequence,
+                    header.sequence,
                     Recorded {
-                        log_time: message.log_time,
+                        log_time: header.log_time,
                         request,
                         response: None,
                     },
                 );
             }
             RESPONSES => {
-                let response = pb::PredictResponse::decode(&message.data[..]).map_err(decode_error)?;
-                if let Some(e) = exchanges.get_mut(&message.sequence) {
+                let response = pb::PredictResponse::decode(&data[..]).map_err(decode_error)?;
+                if let Some(e) = exchanges.get_mut(&header.sequence) {
                     e.response = Some(response);
                 }
             }

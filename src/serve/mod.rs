@@ -1,7 +1,7 @@
 //! `nak serve`: the gRPC server, with health checking, reflection and graceful shutdown.
 
 pub mod admission;
-mod convert;
+pub mod convert;
 mod service;
 mod status_codes;
 
