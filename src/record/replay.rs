@@ -42,6 +42,8 @@ pub enum ReadError {
         #[source]
         source: mcap::McapError,
     },
+    #[error("{path}: corrupt: {message}")]
+    Corrupt { path: String, message: String },
     #[error("{path}: message {sequence} on {topic} does not decode: {source}")]
     Decode {
         path: String,
@@ -111,6 +113,20 @@ impl Iterator for Records<'_> {
 
 /// [`read`] for a recording already in memory; `origin` names it in errors.
 pub fn read_bytes(bytes: &[u8], origin: &str) -> Result<Recording, ReadError> {
+    let origin = origin.to_owned();
+    // mcap's reader subtracts a record's claimed length from what is left of an uncompressed chunk
+    // without checking (found by fuzzing): with overflow checks on that panics, so a malformed file
+    // is refused here rather than taking the process down; without them the count wraps and the
+    // read ends at the file's end as a truncation.
+    std::panic::catch_unwind(|| read_records(bytes, &origin)).unwrap_or_else(|_| {
+        Err(ReadError::Corrupt {
+            path: origin.clone(),
+            message: "a record runs past the end of its chunk".into(),
+        })
+    })
+}
+
+fn read_records(bytes: &[u8], origin: &str) -> Result<Recording, ReadError> {
     let origin = origin.to_owned();
     let mut topics: HashMap<u16, String> = HashMap::new();
     let mut exchanges: BTreeMap<u32, Recorded> = BTreeMap::new();
