@@ -114,14 +114,13 @@ impl Iterator for Records<'_> {
 /// [`read`] for a recording already in memory; `origin` names it in errors.
 pub fn read_bytes(bytes: &[u8], origin: &str) -> Result<Recording, ReadError> {
     let origin = origin.to_owned();
-    // mcap's reader subtracts a record's claimed length from what is left of an uncompressed chunk
-    // without checking (found by fuzzing): with overflow checks on that panics, so a malformed file
-    // is refused here rather than taking the process down; without them the count wraps and the
-    // read ends at the file's end as a truncation.
+    // mcap's reader panics on some malformed files (found by fuzzing: a record that runs past the
+    // end of an uncompressed chunk overflows a subtraction; a record shorter than its fields indexes
+    // past its end): such a file is refused here rather than taking the process down.
     std::panic::catch_unwind(|| read_records(bytes, &origin)).unwrap_or_else(|_| {
         Err(ReadError::Corrupt {
             path: origin.clone(),
-            message: "a record runs past the end of its chunk".into(),
+            message: "malformed records (the MCAP reader gave up on them)".into(),
         })
     })
 }
