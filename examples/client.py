@@ -34,7 +34,7 @@ def load_stubs() -> tuple[ModuleType, ModuleType]:
     return importlib.import_module("nak.v1.deformation_pb2"), importlib.import_module("nak.v1.deformation_pb2_grpc")
 
 
-BEST_MODEL = "pod-res"
+BEST_MODEL = "pod-res-big"
 
 
 @dataclass

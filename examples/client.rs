@@ -12,7 +12,7 @@ async fn main() -> anyhow::Result<()> {
     let target = std::env::args()
         .nth(1)
         .unwrap_or_else(|| "http://127.0.0.1:50051".into());
-    let model = std::env::args().nth(2).unwrap_or_else(|| "pod-res".into());
+    let model = std::env::args().nth(2).unwrap_or_else(|| "pod-res-big".into());
     let mut client = DeformationClient::connect(target).await?;
     let mesh = client.get_mesh(GetMeshRequest::default()).await?.into_inner();
     let grasp_04 = mesh
