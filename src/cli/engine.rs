@@ -69,7 +69,7 @@ pub fn build_engine(config: &ServeConfig) -> anyhow::Result<Engine> {
     }
     for root in config.model_roots() {
         let models = nak::model::load_each(&root, &mesh, config.ort_dylib.as_deref())
-            .with_context(|| format!("cannot read the model directory {}", root.display()))?;
+            .with_context(|| format!("cannot load the models in {}", root.display()))?;
         for model in models {
             match model {
                 Ok(model) => {

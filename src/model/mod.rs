@@ -50,16 +50,19 @@ pub fn model_dirs(root: &Path) -> Result<Vec<PathBuf>, ModelLoadError> {
 }
 
 /// Loads every model under `root` for `mesh`, each on its own: a model that cannot be loaded is its
-/// error, so that a server can refuse it and serve the others. Fails only when `root` is unreadable.
+/// error, so that a server can refuse it and serve the others. Fails as a whole when `root` is
+/// unreadable or when it holds models and ONNX Runtime is missing: that is the machine's fault, not
+/// one model's, and none of them could be served.
 pub fn load_each(
     root: &Path,
     mesh: &TetMesh,
     ort_dylib: Option<&Path>,
 ) -> Result<Vec<Result<OnnxModel, ModelLoadError>>, ModelLoadError> {
-    Ok(model_dirs(root)?
-        .iter()
-        .map(|dir| OnnxModel::load(dir, mesh, ort_dylib))
-        .collect())
+    let dirs = model_dirs(root)?;
+    if !dirs.is_empty() {
+        runtime::locate(ort_dylib)?;
+    }
+    Ok(dirs.iter().map(|dir| OnnxModel::load(dir, mesh, ort_dylib)).collect())
 }
 
 /// Loads every model under `root` for `mesh`; the first refusal stops the load with its reason.
