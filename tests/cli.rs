@@ -147,6 +147,25 @@ fn a_serve_config_file_sets_the_listen_address_and_limits() {
 }
 
 #[test]
+fn compute_niceness_outside_what_the_kernel_allows_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = dir.path().join("serve.toml");
+    std::fs::write(&config, "listen = \"127.0.0.1:0\"\ncompute_niceness = 25\n").unwrap();
+    let output = nak().args(["serve", "--config"]).arg(&config).output().unwrap();
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(stderr.contains("compute_niceness 25 is out of range"), "{stderr}");
+
+    let output = nak().args(["serve", "--compute-niceness", "20"]).output().unwrap();
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        stderr.contains("--compute-niceness") && stderr.contains("0..=19"),
+        "{stderr}"
+    );
+}
+
+#[test]
 fn predict_serves_onnx_models_too() {
     assert!(
         std::env::var_os("ORT_DYLIB_PATH").is_some(),

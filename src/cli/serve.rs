@@ -17,7 +17,7 @@ use super::engine::{ModelArgs, build_engine};
 #[derive(clap::Args)]
 pub struct ServeArgs {
     /// TOML file with any of: mesh, models, ort_dylib, listen, max_displacement_mm,
-    /// max_interaction_points, max_message_bytes, max_in_flight. Flags override it.
+    /// max_interaction_points, max_message_bytes, max_in_flight, compute_niceness. Flags override it.
     #[arg(long)]
     config: Option<PathBuf>,
     /// A model directory (its default mesh) or an .msh file with model.toml beside it
@@ -40,6 +40,10 @@ pub struct ServeArgs {
     /// with RESOURCE_EXHAUSTED [default: 4 per core].
     #[arg(long)]
     max_in_flight: Option<usize>,
+    /// How much lower the compute threads' scheduling priority is than the threads that read
+    /// requests and refuse them under overload (Linux niceness, 0 to 19) [default: 5].
+    #[arg(long, value_parser = clap::value_parser!(i32).range(0..=19))]
+    compute_niceness: Option<i32>,
     #[command(flatten)]
     models: ModelArgs,
     /// Record every exchange to MCAP files in this directory (open them in Foxglove or with `nak replay`).
@@ -64,6 +68,7 @@ pub struct ServeArgs {
 
 pub fn run(args: ServeArgs) -> anyhow::Result<()> {
     let config = serve_config(args)?;
+    serve::start_compute_pool(config.compute_niceness).context("cannot start the compute pool")?;
     let engine = Arc::new(build_engine(&config)?);
     let runtime = tokio::runtime::Runtime::new().context("cannot start the async runtime")?;
     runtime.block_on(async {
@@ -99,6 +104,12 @@ fn serve_config(args: ServeArgs) -> anyhow::Result<ServeConfig> {
     config.max_interaction_points = args.max_interaction_points.unwrap_or(config.max_interaction_points);
     config.max_message_bytes = args.max_message_bytes.unwrap_or(config.max_message_bytes);
     config.max_in_flight = args.max_in_flight.unwrap_or(config.max_in_flight);
+    config.compute_niceness = args.compute_niceness.unwrap_or(config.compute_niceness);
+    anyhow::ensure!(
+        (0..=19).contains(&config.compute_niceness),
+        "compute_niceness {} is out of range: 0 (level with the runtime) to 19",
+        config.compute_niceness
+    );
     config.models.extend(args.models.dirs);
     config.green_linear |= args.models.green_linear;
     config.cache_dir = args.models.cache_dir.or(config.cache_dir);

@@ -49,6 +49,9 @@ pub struct ServeConfig {
     /// Most requests admitted to the compute pool at once; more get RESOURCE_EXHAUSTED at once.
     /// 0: [`admission::PER_THREAD`] per compute thread.
     pub max_in_flight: usize,
+    /// How much lower than the async runtime's the compute threads' scheduling priority is (Linux
+    /// niceness, 0 to 19; 0 leaves them level).
+    pub compute_niceness: i32,
     /// Record every exchange to MCAP files in this directory.
     pub record: Option<PathBuf>,
     pub record_payload: Payload,
@@ -73,6 +76,7 @@ impl Default for ServeConfig {
             max_interaction_points: limits.max_interaction_points,
             max_message_bytes: 1 << 20,
             max_in_flight: 0,
+            compute_niceness: DEFAULT_COMPUTE_NICENESS,
             record: None,
             record_payload: Payload::Surface,
             record_rotate_mb: 1024,
@@ -118,6 +122,41 @@ impl ServeConfig {
         }
     }
 }
+
+/// The compute threads' default niceness: enough that the kernel's scheduler runs the async runtime
+/// first whenever both want a core (docs/reliability.md measures it against 0).
+pub const DEFAULT_COMPUTE_NICENESS: i32 = 5;
+
+/// Starts rayon's global pool, the compute pool, with its threads `niceness` below the async
+/// runtime's priority. When the cores are saturated (overload), the runtime still reads requests,
+/// refuses what admission control turns away and answers health checks promptly instead of
+/// queueing behind computations that are already admitted. Call it before anything uses rayon.
+pub fn start_compute_pool(niceness: i32) -> Result<(), rayon::ThreadPoolBuildError> {
+    let builder = rayon::ThreadPoolBuilder::new().thread_name(|i| format!("nak-compute-{i}"));
+    if niceness == 0 {
+        return builder.build_global();
+    }
+    builder
+        .start_handler(move |_| lower_this_threads_priority(niceness))
+        .build_global()
+}
+
+#[cfg(target_os = "linux")]
+fn lower_this_threads_priority(niceness: i32) {
+    // On Linux nice() changes the calling thread only, and relative to where it is, so a server
+    // started nice stays below its runtime. -1 is also a valid answer: only errno tells failure.
+    // SAFETY: errno and nice() touch the calling thread's own state; no memory is shared.
+    let failed = unsafe {
+        *libc::__errno_location() = 0;
+        libc::nice(niceness) == -1 && *libc::__errno_location() != 0
+    };
+    if failed {
+        tracing::warn!("compute thread keeps its priority: {}", std::io::Error::last_os_error());
+    }
+}
+
+#[cfg(not(target_os = "linux"))]
+fn lower_this_threads_priority(_niceness: i32) {}
 
 #[derive(Debug, thiserror::Error)]
 pub enum ServeError {
