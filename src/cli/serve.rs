@@ -70,7 +70,11 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
     let config = serve_config(args)?;
     serve::start_compute_pool(config.compute_niceness).context("cannot start the compute pool")?;
     let engine = Arc::new(build_engine(&config)?);
-    let runtime = tokio::runtime::Runtime::new().context("cannot start the async runtime")?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .on_thread_start(serve::favour_runtime_thread)
+        .build()
+        .context("cannot start the async runtime")?;
     runtime.block_on(async {
         let listener = tokio::net::TcpListener::bind(config.listen)
             .await

@@ -2,6 +2,7 @@
 
 pub mod admission;
 pub mod convert;
+mod priority;
 mod service;
 mod status_codes;
 
@@ -14,6 +15,7 @@ use tokio::net::TcpListener;
 use tracing::info;
 
 pub use convert::{f32_bytes, grasp_message, response_rows, vec3_rows};
+pub use priority::{DEFAULT_COMPUTE_NICENESS, favour_runtime_thread, start_compute_pool};
 pub use service::DeformationService;
 
 use crate::engine::{Engine, Limits};
@@ -122,41 +124,6 @@ impl ServeConfig {
         }
     }
 }
-
-/// The compute threads' default niceness: enough that the kernel's scheduler runs the async runtime
-/// first whenever both want a core (docs/reliability.md measures it against 0).
-pub const DEFAULT_COMPUTE_NICENESS: i32 = 5;
-
-/// Starts rayon's global pool, the compute pool, with its threads `niceness` below the async
-/// runtime's priority. When the cores are saturated (overload), the runtime still reads requests,
-/// refuses what admission control turns away and answers health checks promptly instead of
-/// queueing behind computations that are already admitted. Call it before anything uses rayon.
-pub fn start_compute_pool(niceness: i32) -> Result<(), rayon::ThreadPoolBuildError> {
-    let builder = rayon::ThreadPoolBuilder::new().thread_name(|i| format!("nak-compute-{i}"));
-    if niceness == 0 {
-        return builder.build_global();
-    }
-    builder
-        .start_handler(move |_| lower_this_threads_priority(niceness))
-        .build_global()
-}
-
-#[cfg(target_os = "linux")]
-fn lower_this_threads_priority(niceness: i32) {
-    // On Linux nice() changes the calling thread only, and relative to where it is, so a server
-    // started nice stays below its runtime. -1 is also a valid answer: only errno tells failure.
-    // SAFETY: errno and nice() touch the calling thread's own state; no memory is shared.
-    let failed = unsafe {
-        *libc::__errno_location() = 0;
-        libc::nice(niceness) == -1 && *libc::__errno_location() != 0
-    };
-    if failed {
-        tracing::warn!("compute thread keeps its priority: {}", std::io::Error::last_os_error());
-    }
-}
-
-#[cfg(not(target_os = "linux"))]
-fn lower_this_threads_priority(_niceness: i32) {}
 
 #[derive(Debug, thiserror::Error)]
 pub enum ServeError {
