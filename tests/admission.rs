@@ -101,6 +101,11 @@ async fn beyond_the_bound_requests_are_refused_at_once_and_late_or_cancelled_one
     // The deadline passes while the pool is busy: DEADLINE_EXCEEDED, from the server.
     let expired = late.await.unwrap().unwrap_err();
     assert_eq!(expired.code(), Code::DeadlineExceeded, "{expired:?}");
+    assert!(
+        expired.message().contains("nothing was computed"),
+        "{}",
+        expired.message()
+    );
     cancelled.abort();
     assert!(cancelled.await.unwrap_err().is_cancelled());
     tokio::time::sleep(Duration::from_millis(20)).await;

@@ -35,6 +35,11 @@ async fn each_model_answers_with_exact_estimated_or_no_forces_and_says_which() {
     let cache = tempfile::tempdir().unwrap();
     let mut engine = engine_with_models(mesh.clone());
     let green = GreenLinear::load_or_compute(&mesh, cache.path(), |_, _| {}).unwrap();
+    let unreached = *mesh
+        .surface_nodes
+        .iter()
+        .find(|n| !green.candidates().contains(n))
+        .unwrap();
     engine.add_model(Arc::new(GreenLinearModel::new(&mesh, green)));
     let server = TestServer::with_engine(engine, 1 << 20).await;
     let mut client = server.client().await;
@@ -86,6 +91,23 @@ async fn each_model_answers_with_exact_estimated_or_no_forces_and_says_which() {
     }
     // A network gives none rather than a made-up value.
     assert!(answer("mlp-residual").await.is_empty());
+    // green-linear answers only where it has Green's functions, and says so elsewhere.
+    let outside = pb::PredictRequest {
+        model: "green-linear".into(),
+        grasps: vec![pb::Grasp {
+            nodes: vec![unreached],
+            ..grasp_message(&grasps[0])
+        }],
+        ..Default::default()
+    };
+    let refused = client.predict(outside).await.unwrap_err();
+    assert_eq!(refused.code(), tonic::Code::InvalidArgument, "{refused:?}");
+    assert!(
+        refused
+            .message()
+            .contains(&format!("no Green's function for node {unreached}")),
+        "{refused:?}"
+    );
     server.stop().await;
 }
 
