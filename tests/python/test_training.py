@@ -5,6 +5,7 @@ computes and beats the untrained network."""
 
 from __future__ import annotations
 
+import json
 import shutil
 import subprocess
 import tomllib
@@ -194,11 +195,14 @@ def exported(coarse_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Ite
 def test_exported_models_are_served_as_onnxruntime_computes_them(
     nak_binary: Path, coarse_data: Path, exported: tuple[Path, Path]
 ) -> None:
-    models, _ = exported
+    models, runs = exported
     manifest = tomllib.loads((models / "tiny-trained" / "manifest.toml").read_text())
     assert manifest["model"]["method"] == "res" and manifest["model"]["mode"] == "residual"
     assert manifest["prior"]["epsilon_m"] == 0.02
     assert manifest["provenance"]["dataset_seed"] == 3 and manifest["provenance"]["steps"] == 150
+    # The commit the weights were trained at, as the run recorded it, and the export's beside it.
+    trained_at = json.loads((runs / "tiny-trained" / "summary.json").read_text())["commit"]
+    assert manifest["provenance"]["commit"] == trained_at and manifest["provenance"]["exported_at"]
     assert (models / "tiny-trained" / "config.toml").is_file()
     dataset = open_dataset(coarse_data)
     sample = dataset.load("test").samples[0]

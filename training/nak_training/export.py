@@ -9,7 +9,6 @@ import datetime
 import json
 import os
 import platform
-import subprocess
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -26,6 +25,7 @@ from .dataset import Dataset, Sample
 from .errors import TrainingInputError
 from .reduced import InteractionGraph
 from .reduced_train import basis_ceiling, load_reduced
+from .revision import git_commit
 from .train import load_trained, served_features
 
 OPSET = 17
@@ -203,21 +203,13 @@ def provenance(config: TrainConfig, dataset: Dataset, summary: dict[str, Any], s
         "parameters": int(summary["parameters"]),
         "training_time_s": float(summary["training_time_s"]),
         "epsilon_fit": ", ".join(f"{k} m: {v:.2f} %" for k, v in scores.items()) or "fixed by the config",
-        "commit": git_commit(),
+        # The commit the weights were trained at (runs from before it was recorded: the export's).
+        "commit": str(summary.get("commit", git_commit())),
+        "exported_at": git_commit(),
         "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "machine": machine(),
         "torch": torch.__version__,
     }
-
-
-def git_commit() -> str:
-    """HEAD, marked dirty when the training package or its configurations differ from it."""
-    try:
-        head = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", "training"], capture_output=True, text=True)
-        return head + ("-dirty" if dirty.stdout.strip() else "")
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
 
 
 def machine() -> str:

@@ -24,6 +24,7 @@ from .dataset import Dataset, Mesh, Split
 from .errors import TrainingInputError
 from .kelvinlet import Prior, pad_points
 from .models import Grasped, SetNet, build, parameter_count
+from .revision import git_commit
 from .sampling import QSampler
 
 EPSILON_GRID_M = (0.01, 0.015, 0.02, 0.025, 0.03, 0.04, 0.05, 0.06, 0.08)
@@ -196,6 +197,7 @@ class Run:
         c = self.config
         self.log(f"{parameter_count(self.model):,} parameters; {c.steps} steps of {c.batch} samples")
         self.model.train()
+        commit = git_commit()
         started = time.monotonic() - self.elapsed
         window: list[float] = []
         while self.step < c.steps:
@@ -227,6 +229,7 @@ class Run:
             "val_dcm": self.best,
             "steps": self.step,
             "training_time_s": round(self.elapsed, 1),
+            "commit": commit,
             "train_samples": len(self.train),
             "val_samples": len(self.val),
             "parameters": parameter_count(self.model),
