@@ -1,4 +1,4 @@
-//! Per-stage latency of the ONNX test models and the shipped reduced-basis networks `pod-res(-fast)` on the
+//! Per-stage latency of the ONNX test models and the shipped reduced-basis networks (`pod-res*`) on the
 //! paper-scale phantom (9,701 nodes), one grasper of ten nodes: the whole prediction in criterion, and
 //! the mean prior / network split from the engine's own stage timing; and green-linear at K = 10 and
 //! K = 20. Needs ORT_DYLIB_PATH (scripts/onnxruntime-path); green-linear's cache goes to
@@ -12,9 +12,13 @@ use nak::engine::{DeformationModel, Engine, Grasp, Limits, Request};
 use nak::fem::{GreenLinear, GreenLinearModel};
 use nak::mesh::{self, MeshSource};
 
-const MODELS: [&str; 7] = [
+const SHIPPED_REDUCED: [&str; 4] = ["pod-res-fast", "pod-res-lean", "pod-res-big", "pod-res"];
+
+const MODELS: [&str; 9] = [
     "kelvinlet",
     "pod-res-fast",
+    "pod-res-lean",
+    "pod-res-big",
     "pod-res",
     "mlp-residual",
     "mlp-direct-prior",
@@ -29,7 +33,7 @@ fn models(c: &mut Criterion) {
     for model in nak::model::load_all(&dir, &mesh, None).expect("test models (is ORT_DYLIB_PATH set?)") {
         engine.add_model(Arc::new(model) as Arc<dyn DeformationModel>);
     }
-    for name in ["pod-res-fast", "pod-res"] {
+    for name in SHIPPED_REDUCED {
         let shipped = Path::new(env!("CARGO_MANIFEST_DIR"))
             .join("models/phantom-liver")
             .join(name);
