@@ -13,6 +13,7 @@ import tempfile
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
+from collections.abc import Callable
 from typing import Any
 
 import matplotlib
@@ -125,6 +126,7 @@ def figure(entries: list[Entry], baselines: dict[str, dict[str, Any]], path: Pat
     markers = {"pointnet": "o", "deepset": "s", "isab": "^", "pod": "D", "deeponet": "P"}
     colours = {"base": "#9e9e9e", "res": "#1f77b4", "reg": "#d62728"}
     fig, ax = plt.subplots(figsize=(7.5, 5))
+    names: list[tuple[str, float, float]] = []
     for e in entries:
         if e.trained_on != "all":
             continue
@@ -132,12 +134,12 @@ def figure(entries: list[Entry], baselines: dict[str, dict[str, Any]], path: Pat
         if x is None or y is None:
             continue
         ax.scatter(x, y, marker=markers[e.architecture], s=70, color=colours[e.method], edgecolors="black")
-        ax.annotate(e.name, (x, y), textcoords="offset points", xytext=(6, -3), fontsize=7)
+        names.append((e.name, x, y))
     for name, metrics in baselines.items():
         x, y = metrics.get("total_ms_p50"), metrics.get("dcm_code_combined")
         if x is not None and y is not None:
             ax.scatter(x, y, marker="*", s=160, color="#2ca02c", edgecolors="black")
-            ax.annotate(name, (x, y), textcoords="offset points", xytext=(6, -3), fontsize=7)
+            names.append((name, x, y))
     for arch, marker in markers.items():
         if any(e.architecture == arch for e in entries):
             ax.scatter([], [], marker=marker, color="white", edgecolors="black", label=ARCHITECTURES[arch])
@@ -149,17 +151,80 @@ def figure(entries: list[Entry], baselines: dict[str, dict[str, Any]], path: Pat
         "DCM, code form (%), linear test split, all samples",
         "nak on the phantom liver: accuracy against served time (cf. the paper's Fig. 2)",
     )
-    save(fig, ax, path, labels, legend_size=8)
+    save(fig, ax, path, labels, legend_size=8, annotate=lambda: place_labels(ax, names))
 
 
-def save(fig: Any, ax: Any, path: Path, labels: tuple[str, str, str], legend_size: int) -> None:
-    """Axis labels and title, grid, legend, and the PNG."""
+# Where a point's name may go relative to it (points), tried in this order.
+LABEL_OFFSETS = [(7, -3), (-7, -3), (7, 5), (-7, 5), (7, -11), (-7, -11), (0, 10), (0, -17), (7, 13), (-7, -19)]
+
+
+def alignment(offset: tuple[int, int]) -> str:
+    """A label left of its point ends there, one right of it starts there, one above or below is centred."""
+    return "right" if offset[0] < 0 else "left" if offset[0] > 0 else "center"
+
+
+def place_labels(ax: Any, names: list[tuple[str, float, float]], fontsize: float = 7) -> None:
+    """Names beside their points, each at the first offset where its text, as drawn, stays between the
+    axes' sides and overlaps no marker and no name already placed, else where it overlaps least
+    (points close together otherwise print their names over each other). Call it once the layout is
+    final: it measures in display space."""
+    renderer = ax.figure.canvas.get_renderer()
+    inside = ax.get_window_extent(renderer)
+    marker = 6 * ax.figure.dpi / 72
+    taken = []
+    for _, x, y in names:
+        px, py = ax.transData.transform((x, y))
+        taken.append((px - marker, py - marker, px + marker, py + marker))
+
+    def overlap(b: Any) -> float:
+        outside = max(0.0, inside.x0 - b.x0) + max(0.0, b.x1 - inside.x1)
+        shared = sum(
+            max(0.0, min(b.x1, t[2]) - max(b.x0, t[0])) * max(0.0, min(b.y1, t[3]) - max(b.y0, t[1])) for t in taken
+        )
+        return 1e6 * outside + shared
+
+    for name, x, y in sorted(names, key=lambda n: (-n[2], n[1])):
+        best: tuple[float, tuple[int, int]] | None = None
+        for offset in LABEL_OFFSETS:
+            label = ax.annotate(name, (x, y), textcoords="offset points", xytext=offset, fontsize=fontsize)
+            label.set_horizontalalignment(alignment(offset))
+            cost = overlap(label.get_window_extent(renderer))
+            label.remove()
+            if best is None or cost < best[0]:
+                best = (cost, offset)
+            if cost == 0:
+                break
+        assert best is not None
+        offset = best[1]
+        label = ax.annotate(
+            name,
+            (x, y),
+            textcoords="offset points",
+            xytext=offset,
+            fontsize=fontsize,
+            ha=alignment(offset),
+        )
+        b = label.get_window_extent(renderer)
+        taken.append((b.x0, b.y0, b.x1, b.y1))
+
+
+def save(
+    fig: Any,
+    ax: Any,
+    path: Path,
+    labels: tuple[str, str, str],
+    legend_size: int,
+    annotate: Callable[[], None] | None = None,
+) -> None:
+    """Axis labels and title, grid, legend, `annotate` once the layout is final, and the PNG."""
     ax.set_xlabel(labels[0])
     ax.set_ylabel(labels[1])
     ax.set_title(labels[2])
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=legend_size, loc="lower right")
     fig.tight_layout()
+    if annotate is not None:
+        annotate()
     fig.savefig(path, dpi=130)
     plt.close(fig)
 
