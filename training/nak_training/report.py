@@ -170,25 +170,28 @@ def place_labels(ax: Any, names: list[tuple[str, float, float]], fontsize: float
     final: it measures in display space."""
     renderer = ax.figure.canvas.get_renderer()
     inside = ax.get_window_extent(renderer)
-    marker = 6 * ax.figure.dpi / 72
-    taken = []
+    half = 5 * ax.figure.dpi / 72  # a marker's half width, display pixels
+    markers = []
     for _, x, y in names:
         px, py = ax.transData.transform((x, y))
-        taken.append((px - marker, py - marker, px + marker, py + marker))
+        markers.append((px - half, py - half, px + half, py + half))
+    placed: list[tuple[float, float, float, float]] = []
 
-    def overlap(b: Any) -> float:
+    def overlap(b: Any, own: int) -> float:
         outside = max(0.0, inside.x0 - b.x0) + max(0.0, b.x1 - inside.x1)
+        others = [t for i, t in enumerate(markers) if i != own] + placed
         shared = sum(
-            max(0.0, min(b.x1, t[2]) - max(b.x0, t[0])) * max(0.0, min(b.y1, t[3]) - max(b.y0, t[1])) for t in taken
+            max(0.0, min(b.x1, t[2]) - max(b.x0, t[0])) * max(0.0, min(b.y1, t[3]) - max(b.y0, t[1])) for t in others
         )
         return 1e6 * outside + shared
 
-    for name, x, y in sorted(names, key=lambda n: (-n[2], n[1])):
+    for i in sorted(range(len(names)), key=lambda i: (-names[i][2], names[i][1])):
+        name, x, y = names[i]
         best: tuple[float, tuple[int, int]] | None = None
         for offset in LABEL_OFFSETS:
             label = ax.annotate(name, (x, y), textcoords="offset points", xytext=offset, fontsize=fontsize)
             label.set_horizontalalignment(alignment(offset))
-            cost = overlap(label.get_window_extent(renderer))
+            cost = overlap(label.get_window_extent(renderer), i)
             label.remove()
             if best is None or cost < best[0]:
                 best = (cost, offset)
@@ -205,7 +208,7 @@ def place_labels(ax: Any, names: list[tuple[str, float, float]], fontsize: float
             ha=alignment(offset),
         )
         b = label.get_window_extent(renderer)
-        taken.append((b.x0, b.y0, b.x1, b.y1))
+        placed.append((b.x0, b.y0, b.x1, b.y1))
 
 
 def save(
