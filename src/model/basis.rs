@@ -239,15 +239,20 @@ fn add_tile_f32(tile: &[f32], g: &[f32], out: &mut [f32]) {
 /// product reads half the bytes at the f32 product's pace; elsewhere the bits are widened in software.
 fn add_tile_f16(tile: &[u16], g: &[f32], out: &mut [f32]) {
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("f16c")
-        && std::arch::is_x86_feature_detected!("avx2")
-        && std::arch::is_x86_feature_detected!("fma")
-    {
-        // SAFETY: the CPU features the function is compiled for were just detected.
+    if *HAS_F16C {
+        // SAFETY: HAS_F16C says the CPU has every feature the function is compiled for.
         return unsafe { add_tile_f16c(tile, g, out) };
     }
     add_tile_f16_widened(tile, g, out)
 }
+
+/// Whether this CPU runs [`add_tile_f16c`], detected once rather than per tile.
+#[cfg(target_arch = "x86_64")]
+static HAS_F16C: std::sync::LazyLock<bool> = std::sync::LazyLock::new(|| {
+    std::arch::is_x86_feature_detected!("f16c")
+        && std::arch::is_x86_feature_detected!("avx2")
+        && std::arch::is_x86_feature_detected!("fma")
+});
 
 /// [`add_tile_f32`] over f16 bits with F16C: per mode, six loads of eight halves, each widened and
 /// multiply-added into one of six 8-lane accumulators (the tile's 48 rows).
@@ -380,9 +385,9 @@ mod tests {
         add_tile_f16_widened(&tiled, &g, &mut widened);
         kernels.push(("software", widened));
         #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("f16c") && std::arch::is_x86_feature_detected!("fma") {
+        if *HAS_F16C {
             let mut f16c = vec![0.0f32; 3 * nodes];
-            // SAFETY: the features were just detected.
+            // SAFETY: HAS_F16C says the CPU has the features.
             unsafe { add_tile_f16c(&tiled, &g, &mut f16c) };
             kernels.push(("f16c", f16c));
         }
