@@ -439,93 +439,68 @@ async fn malformed_grasps_and_node_selections_are_refused_naming_the_field() {
     let m = server.engine.mesh().clone();
     let surface = m.surface_nodes[0];
     let u = vec3([0.0, 0.01, 0.0]);
-    let both = Grasp {
-        nodes: vec![surface],
-        point: vec3([0.0, 0.0, 0.0]),
-        displacement: u,
-        ..Default::default()
-    };
-    refused(
-        &server,
-        request(vec![both]),
-        Code::InvalidArgument,
-        "grasps[0] gives both nodes and a point",
-    )
-    .await;
-    let nothing = Grasp {
-        displacement: u,
-        ..Default::default()
-    };
-    refused(
-        &server,
-        request(vec![nothing]),
-        Code::InvalidArgument,
-        "grasps[0] holds nothing",
-    )
-    .await;
-    let negative_radius = Grasp {
-        point: vec3([0.0, 0.0, 0.0]),
-        radius: -0.01,
-        displacement: u,
-        ..Default::default()
-    };
-    refused(
-        &server,
-        request(vec![negative_radius]),
-        Code::InvalidArgument,
-        "non-negative distance",
-    )
-    .await;
-    let far_away = Grasp {
-        point: vec3([10.0, 10.0, 10.0]),
-        radius: 0.005,
-        displacement: u,
-        ..Default::default()
-    };
-    refused(
-        &server,
-        request(vec![far_away]),
-        Code::InvalidArgument,
-        "no surface node lies within 5.0 mm",
-    )
-    .await;
+    let malformed = [
+        (
+            Grasp {
+                nodes: vec![surface],
+                point: vec3([0.0, 0.0, 0.0]),
+                displacement: u,
+                ..Default::default()
+            },
+            "grasps[0] gives both nodes and a point",
+        ),
+        (
+            Grasp {
+                displacement: u,
+                ..Default::default()
+            },
+            "grasps[0] holds nothing",
+        ),
+        (
+            Grasp {
+                point: vec3([0.0, 0.0, 0.0]),
+                radius: -0.01,
+                displacement: u,
+                ..Default::default()
+            },
+            "non-negative distance",
+        ),
+        (
+            Grasp {
+                point: vec3([10.0, 10.0, 10.0]),
+                radius: 0.005,
+                displacement: u,
+                ..Default::default()
+            },
+            "no surface node lies within 5.0 mm",
+        ),
+    ];
+    for (grasp, mentions) in malformed {
+        refused(&server, request(vec![grasp]), Code::InvalidArgument, mentions).await;
+    }
 
-    let grasps = || vec![node_grasp(&[surface], [0.0, 0.01, 0.0])];
-    let unknown_selection = PredictRequest {
-        selection: 99,
-        ..request(grasps())
-    };
-    refused(
-        &server,
-        unknown_selection,
-        Code::InvalidArgument,
-        "unknown node selection 99",
-    )
-    .await;
-    let empty_list = PredictRequest {
-        selection: pb::NodeSelection::List as i32,
-        ..request(grasps())
-    };
-    refused(
-        &server,
-        empty_list,
-        Code::InvalidArgument,
-        "the node selection is an empty list",
-    )
-    .await;
     let n = m.node_count() as u32;
-    let missing_node = PredictRequest {
-        selection: pb::NodeSelection::List as i32,
-        nodes: vec![0, n + 5],
-        ..request(grasps())
-    };
-    refused(
-        &server,
-        missing_node,
-        Code::InvalidArgument,
-        &format!("selected node {} does not exist", n + 5),
-    )
-    .await;
+    let selections = [
+        (99, vec![], "unknown node selection 99".to_owned()),
+        (
+            pb::NodeSelection::List as i32,
+            vec![],
+            "the node selection is an empty list".to_owned(),
+        ),
+        (
+            pb::NodeSelection::List as i32,
+            vec![0, n + 5],
+            format!("selected node {} does not exist", n + 5),
+        ),
+    ];
+    for (selection, nodes, mentions) in selections {
+        let message = PredictRequest {
+            selection,
+            nodes,
+            ..request(vec![node_grasp(&[surface], [0.0, 0.01, 0.0])])
+        };
+        refused(&server, message, Code::InvalidArgument, &mentions).await;
+    }
     server.stop().await;
 }
 
