@@ -188,6 +188,7 @@ def compare_with_onnxruntime(
 
 def provenance(config: TrainConfig, dataset: Dataset, summary: dict[str, Any], state: dict[str, Any]) -> dict[str, Any]:
     scores = state.get("epsilon_scores", {})
+    exported_at = git_commit()
     return {
         "config": "config.toml",
         "architecture": config.architecture,
@@ -204,8 +205,8 @@ def provenance(config: TrainConfig, dataset: Dataset, summary: dict[str, Any], s
         "training_time_s": float(summary["training_time_s"]),
         "epsilon_fit": ", ".join(f"{k} m: {v:.2f} %" for k, v in scores.items()) or "fixed by the config",
         # The commit the weights were trained at (runs from before it was recorded: the export's).
-        "commit": str(summary.get("commit", git_commit())),
-        "exported_at": git_commit(),
+        "commit": str(summary.get("commit", exported_at)),
+        "exported_at": exported_at,
         "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "machine": machine(),
         "torch": torch.__version__,

@@ -187,26 +187,17 @@ def place_labels(ax: Any, names: list[tuple[str, float, float]], fontsize: float
 
     for i in sorted(range(len(names)), key=lambda i: (-names[i][2], names[i][1])):
         name, x, y = names[i]
-        best: tuple[float, tuple[int, int]] | None = None
+        label = ax.annotate(name, (x, y), textcoords="offset points", xytext=LABEL_OFFSETS[0], fontsize=fontsize)
+        costs = []
         for offset in LABEL_OFFSETS:
-            label = ax.annotate(name, (x, y), textcoords="offset points", xytext=offset, fontsize=fontsize)
+            label.xyann = offset
             label.set_horizontalalignment(alignment(offset))
-            cost = overlap(label.get_window_extent(renderer), i)
-            label.remove()
-            if best is None or cost < best[0]:
-                best = (cost, offset)
-            if cost == 0:
+            costs.append((overlap(label.get_window_extent(renderer), i), offset))
+            if costs[-1][0] == 0:
                 break
-        assert best is not None
-        offset = best[1]
-        label = ax.annotate(
-            name,
-            (x, y),
-            textcoords="offset points",
-            xytext=offset,
-            fontsize=fontsize,
-            ha=alignment(offset),
-        )
+        offset = min(costs, key=lambda c: c[0])[1]
+        label.xyann = offset
+        label.set_horizontalalignment(alignment(offset))
         b = label.get_window_extent(renderer)
         placed.append((b.x0, b.y0, b.x1, b.y1))
 
