@@ -1,10 +1,18 @@
 //! The coefficient solve `(ΓᵀΓ + λI) k = Γᵀu` for K interaction points, in f64.
 //!
-//! The 3K×3K system is small (K ≈ 20 for two graspers) and symmetric positive definite for λ > 0;
-//! nalgebra's Cholesky factorizes it in place in buffers kept in a [`Workspace`], so a request
-//! allocates nothing once the workspace has grown to the largest K seen.
+//! The 3K×3K system is small (K ≈ 20 for two graspers) and symmetric positive definite for λ > 0.
+//! Γ is symmetric too (`Γ(r) = Γ(−r)`, each block symmetric), so each block is evaluated once,
+//! only the lower triangle of `ΓᵀΓ = ΓΓ` is formed, and faer factorizes it in place: about half
+//! the work of a general product and solve. Buffers live in a [`Workspace`], so a request allocates nothing
+//! once the workspace has grown to the largest K seen.
 
-use nalgebra::{DMatrix, DVector, DVectorView, Dyn, VecStorage};
+use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
+use faer::linalg::cholesky::llt::factor::{
+    LltError, LltParams, LltRegularization, cholesky_in_place, cholesky_in_place_scratch,
+};
+use faer::linalg::cholesky::llt::solve::solve_in_place_with_conj;
+use faer::linalg::matmul::triangular::{BlockStructure, matmul};
+use faer::{Accum, Conj, MatMut, MatRef, Par, Spec};
 
 use super::{InteractionPoints, Kelvinlet};
 
@@ -54,7 +62,44 @@ pub struct Workspace {
     gamma: Vec<f64>,
     normal: Vec<f64>,
     rhs: Vec<f64>,
+    scratch: Scratch,
     pub coefficients: Coefficients,
+}
+
+/// faer's scratch space, and the largest request it was made for.
+#[derive(Default)]
+struct Scratch(Option<(StackReq, MemBuffer)>);
+
+impl std::fmt::Debug for Scratch {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_tuple("Scratch")
+            .field(&self.0.as_ref().map(|(req, _)| req))
+            .finish()
+    }
+}
+
+impl Scratch {
+    /// Room for factorizing an `n × n` system, grown when too small.
+    fn stack(&mut self, n: usize) -> &mut MemStack {
+        let needed = cholesky_in_place_scratch::<f64>(n, Par::Seq, default_params());
+        let fits = self.0.as_ref().is_some_and(|(held, _)| held.or(needed) == *held);
+        if !fits {
+            self.0 = None;
+        }
+        let (_, buffer) = self.0.get_or_insert_with(|| (needed, MemBuffer::new(needed)));
+        MemStack::new(buffer)
+    }
+}
+
+fn default_params() -> Spec<LltParams, f64> {
+    Spec::default()
+}
+
+/// Resizes `buffer` to `len` values and views it as a column-major `rows × cols` matrix.
+fn matrix(buffer: &mut Vec<f64>, rows: usize, cols: usize) -> MatMut<'_, f64> {
+    buffer.clear();
+    buffer.resize(rows * cols, 0.0);
+    MatMut::from_column_major_slice_mut(buffer, rows, cols)
 }
 
 impl Kelvinlet {
@@ -70,47 +115,57 @@ impl Kelvinlet {
             self.push_coefficient(ws, points.positions[0], points.displacements[0]);
             return Ok(());
         }
-        // Γ (column-major, as nalgebra stores it): block (i, j) = Γ(x_i − x_j).
-        ws.gamma.clear();
-        ws.gamma.resize(n * n, 0.0);
+        // Block (i, j) = Γ(x_i − x_j) = block (j, i): each is evaluated once and written to both.
+        let mut gamma = matrix(&mut ws.gamma, n, n);
         for j in 0..k {
-            for i in 0..k {
+            for i in j..k {
                 let r = std::array::from_fn(|c| points.positions[i][c] - points.positions[j][c]);
-                let block = self.response(r);
-                for (a, row) in block.iter().enumerate() {
+                for (a, row) in self.response(r).iter().enumerate() {
                     for (b, v) in row.iter().enumerate() {
-                        ws.gamma[(3 * j + b) * n + 3 * i + a] = *v;
+                        gamma[(3 * i + a, 3 * j + b)] = *v;
+                        gamma[(3 * j + b, 3 * i + a)] = *v;
                     }
                 }
             }
         }
-        let gamma = DMatrix::from_vec_storage(VecStorage::new(Dyn(n), Dyn(n), std::mem::take(&mut ws.gamma)));
-        let u = DVectorView::from_slice(points.displacements.as_flattened(), n);
-        ws.normal.clear();
-        ws.normal.resize(n * n, 0.0);
-        let mut normal = DMatrix::from_vec_storage(VecStorage::new(Dyn(n), Dyn(n), std::mem::take(&mut ws.normal)));
-        // Γ is symmetric (Γ(r) = Γ(−r) and each block is symmetric), so ΓᵀΓ = ΓΓ, which nalgebra
-        // computes with a blocked SIMD GEMM; its transposed product does not.
-        gamma.mul_to(&gamma, &mut normal);
+        let gamma = MatRef::from_column_major_slice(&ws.gamma, n, n);
+        let mut normal = matrix(&mut ws.normal, n, n);
         for d in 0..n {
-            normal[(d, d)] += self.params.lambda;
+            normal[(d, d)] = self.params.lambda;
         }
-        ws.rhs.clear();
-        ws.rhs.resize(n, 0.0);
-        let mut rhs = DVector::from_vec_storage(VecStorage::new(Dyn(n), nalgebra::U1, std::mem::take(&mut ws.rhs)));
-        gamma.tr_mul_to(&u, &mut rhs);
-        ws.gamma = gamma.data.into();
-        let Some(cholesky) = normal.cholesky() else {
-            ws.rhs = rhs.data.into();
-            return Err(SolveError::NotPositiveDefinite { points: k });
-        };
-        cholesky.solve_mut(&mut rhs);
-        ws.normal = cholesky.unpack().data.into();
+        // Lower triangle of ΓΓ + λI (ΓᵀΓ = ΓΓ, Γ symmetric).
+        matmul(
+            normal.as_mut(),
+            BlockStructure::TriangularLower,
+            Accum::Add,
+            gamma,
+            BlockStructure::Rectangular,
+            gamma,
+            BlockStructure::Rectangular,
+            1.0,
+            Par::Seq,
+        );
+        let mut rhs = matrix(&mut ws.rhs, n, 1);
+        let u = MatRef::from_column_major_slice(points.displacements.as_flattened(), n, 1);
+        faer::linalg::matmul::matmul(rhs.as_mut(), Accum::Replace, gamma, u, 1.0, Par::Seq);
+        let stack = ws.scratch.stack(n);
+        let mut normal = MatMut::from_column_major_slice_mut(&mut ws.normal, n, n);
+        match cholesky_in_place(
+            normal.as_mut(),
+            LltRegularization::default(),
+            Par::Seq,
+            stack,
+            default_params(),
+        ) {
+            Ok(_) => {}
+            Err(LltError::NonPositivePivot { .. }) => return Err(SolveError::NotPositiveDefinite { points: k }),
+        }
+        let rhs = MatMut::from_column_major_slice_mut(&mut ws.rhs, n, 1);
+        solve_in_place_with_conj(normal.as_ref(), Conj::No, rhs, Par::Seq, MemStack::new(&mut []));
         for j in 0..k {
-            let kj = [rhs[3 * j], rhs[3 * j + 1], rhs[3 * j + 2]];
+            let kj = [ws.rhs[3 * j], ws.rhs[3 * j + 1], ws.rhs[3 * j + 2]];
             self.push_coefficient(ws, points.positions[j], kj);
         }
-        ws.rhs = rhs.data.into();
         Ok(())
     }
 
