@@ -7,6 +7,7 @@
 //! finds. Blocks are spread over cores for large meshes.
 
 use multiversion::multiversion;
+use multiversion::target::target_cfg;
 use rayon::prelude::*;
 
 use super::gpu::Resident;
@@ -125,7 +126,16 @@ impl Kelvinlet {
     }
 }
 
+/// Nodes evaluated together against every interaction point: one AVX-512 register per coordinate
+/// (two AVX2 ones), so positions and sums stay in registers while the points stream past.
+const LANES: usize = 16;
+
 /// One block of nodes: `out` holds up to BLOCK interleaved rows (fewer in the last block).
+///
+/// Products are fused into FMAs where the CPU has them (Rust never contracts `a * b + c` itself),
+/// and `1/r_ε` comes from the CPU's reciprocal square root estimate refined by one Newton step:
+/// a square root and a division per term would take the divider about twice as long as all the
+/// other arithmetic together.
 #[multiversion(targets(
     "x86_64+avx512f+avx512vl+avx2+fma",
     "x86_64+avx2+fma",
@@ -140,29 +150,125 @@ fn field_block(
     k: Constants,
     out: &mut [f32],
 ) {
-    let mut ux = [0.0f32; BLOCK];
-    let mut uy = [0.0f32; BLOCK];
-    let mut uz = [0.0f32; BLOCK];
-    for j in 0..c.len() {
+    #[target_cfg(any(target_feature = "fma", target_arch = "aarch64"))]
+    #[inline(always)]
+    fn fused(a: f32, b: f32, c: f32) -> f32 {
+        a.mul_add(b, c)
+    }
+    #[target_cfg(not(any(target_feature = "fma", target_arch = "aarch64")))]
+    #[inline(always)]
+    fn fused(a: f32, b: f32, c: f32) -> f32 {
+        a * b + c
+    }
+    #[target_cfg(all(target_arch = "x86_64", target_feature = "avx512f"))]
+    #[inline(always)]
+    fn inverse_sqrt(x: &[f32; LANES]) -> [f32; LANES] {
+        // SAFETY: this version of the function runs only where AVX-512F was detected.
+        unsafe { x86::inverse_sqrt_avx512(x) }
+    }
+    #[target_cfg(all(
+        target_arch = "x86_64",
+        target_feature = "avx2",
+        target_feature = "fma",
+        not(target_feature = "avx512f")
+    ))]
+    #[inline(always)]
+    fn inverse_sqrt(x: &[f32; LANES]) -> [f32; LANES] {
+        // SAFETY: this version of the function runs only where AVX2 and FMA were detected.
+        unsafe { x86::inverse_sqrt_avx2(x) }
+    }
+    #[target_cfg(not(all(target_arch = "x86_64", target_feature = "avx2", target_feature = "fma")))]
+    #[inline(always)]
+    fn inverse_sqrt(x: &[f32; LANES]) -> [f32; LANES] {
+        x.map(|v| 1.0 / v.sqrt())
+    }
+    /// Adds the field of interaction point `j` at the lanes' nodes to `u`.
+    #[inline(always)]
+    fn add_term(node: [&[f32; LANES]; 3], c: &Coefficients, j: usize, k: Constants, u: &mut [[f32; LANES]; 3]) {
+        let [x, y, z] = node;
         let (px, py, pz) = (c.x[j], c.y[j], c.z[j]);
         let (kx, ky, kz) = (c.kx[j], c.ky[j], c.kz[j]);
-        for i in 0..BLOCK {
-            let rx = xs[i] - px;
-            let ry = ys[i] - py;
-            let rz = zs[i] - pz;
-            let r_sq = rx * rx + ry * ry + rz * rz + k.epsilon_sq;
-            let inv = 1.0 / r_sq.sqrt();
+        let r_sq: [f32; LANES] = std::array::from_fn(|i| {
+            let (rx, ry, rz) = (x[i] - px, y[i] - py, z[i] - pz);
+            fused(rx, rx, fused(ry, ry, fused(rz, rz, k.epsilon_sq)))
+        });
+        let inv_r = inverse_sqrt(&r_sq);
+        for i in 0..LANES {
+            let (rx, ry, rz) = (x[i] - px, y[i] - py, z[i] - pz);
+            let inv = inv_r[i];
             let inv3 = inv * inv * inv;
-            let diagonal = k.a * inv + k.b * inv3;
-            let along = (rx * kx + ry * ky + rz * kz) * inv3;
-            ux[i] += diagonal * kx + along * rx;
-            uy[i] += diagonal * ky + along * ry;
-            uz[i] += diagonal * kz + along * rz;
+            let diagonal = fused(k.b, inv3, k.a * inv);
+            let along = fused(rx, kx, fused(ry, ky, rz * kz)) * inv3;
+            u[0][i] = fused(diagonal, kx, fused(along, rx, u[0][i]));
+            u[1][i] = fused(diagonal, ky, fused(along, ry, u[1][i]));
+            u[2][i] = fused(diagonal, kz, fused(along, rz, u[2][i]));
+        }
+    }
+    let mut u = [[0.0f32; BLOCK]; 3];
+    for lane in (0..BLOCK).step_by(LANES) {
+        let node = [xs, ys, zs].map(|v| -> &[f32; LANES] { v[lane..lane + LANES].try_into().unwrap_or(&[0.0; LANES]) });
+        // Even and odd points into separate sums: two independent FMA chains keep the FMA units
+        // busy where one would wait on its own latency.
+        let mut even = [[0.0f32; LANES]; 3];
+        let mut odd = [[0.0f32; LANES]; 3];
+        let mut j = 0;
+        while j + 1 < c.len() {
+            add_term(node, c, j, k, &mut even);
+            add_term(node, c, j + 1, k, &mut odd);
+            j += 2;
+        }
+        if j < c.len() {
+            add_term(node, c, j, k, &mut even);
+        }
+        for d in 0..3 {
+            for i in 0..LANES {
+                u[d][lane + i] = even[d][i] + odd[d][i];
+            }
         }
     }
     for (i, row) in out.chunks_exact_mut(3).enumerate() {
-        row[0] = ux[i];
-        row[1] = uy[i];
-        row[2] = uz[i];
+        row[0] = u[0][i];
+        row[1] = u[1][i];
+        row[2] = u[2][i];
+    }
+}
+
+/// `1/√x` on 16 lanes: the hardware estimate (relative error at most 2⁻¹⁴ with AVX-512, 1.5·2⁻¹² with
+/// AVX) and one Newton step `y (3 − x y²) / 2`, which squares that error: within 4e-7 of the exact
+/// value, a few f32 ulps, for the positive, normal `x = |r|² + ε²` the kernel takes.
+#[cfg(target_arch = "x86_64")]
+mod x86 {
+    use std::arch::x86_64::*;
+
+    use super::LANES;
+
+    #[target_feature(enable = "avx512f")]
+    pub fn inverse_sqrt_avx512(x: &[f32; LANES]) -> [f32; LANES] {
+        let mut out = [0.0f32; LANES];
+        // SAFETY: both pointers address LANES = 16 f32s, one 512-bit vector (unaligned access).
+        unsafe {
+            let v = _mm512_loadu_ps(x.as_ptr());
+            let y = _mm512_rsqrt14_ps(v);
+            let half_x_y = _mm512_mul_ps(_mm512_mul_ps(v, _mm512_set1_ps(0.5)), y);
+            let step = _mm512_fnmadd_ps(half_x_y, y, _mm512_set1_ps(1.5));
+            _mm512_storeu_ps(out.as_mut_ptr(), _mm512_mul_ps(y, step));
+        }
+        out
+    }
+
+    #[target_feature(enable = "avx2,fma")]
+    pub fn inverse_sqrt_avx2(x: &[f32; LANES]) -> [f32; LANES] {
+        let mut out = [0.0f32; LANES];
+        for half in 0..2 {
+            // SAFETY: each half is 8 f32s, one 256-bit vector (unaligned access).
+            unsafe {
+                let v = _mm256_loadu_ps(x.as_ptr().add(8 * half));
+                let y = _mm256_rsqrt_ps(v);
+                let half_x_y = _mm256_mul_ps(_mm256_mul_ps(v, _mm256_set1_ps(0.5)), y);
+                let step = _mm256_fnmadd_ps(half_x_y, y, _mm256_set1_ps(1.5));
+                _mm256_storeu_ps(out.as_mut_ptr().add(8 * half), _mm256_mul_ps(y, step));
+            }
+        }
+        out
     }
 }
