@@ -51,7 +51,12 @@ async fn beyond_the_bound_requests_are_refused_at_once_and_late_or_cancelled_one
         max_message_bytes: 1 << 20,
         max_in_flight: 3,
     };
-    let server = TestServer::with_intake(Engine::new(mesh.clone(), Limits::default()), intake).await;
+    // Every request to the pool, which the test holds: none is quick enough for the connection's thread.
+    let limits = Limits {
+        quick_terms: 0,
+        ..Limits::default()
+    };
+    let server = TestServer::with_intake(Engine::new(mesh.clone(), limits), intake).await;
     let client = server.client().await;
     let request = pb::PredictRequest {
         grasps: two_graspers(&mesh).iter().map(grasp_message).collect(),

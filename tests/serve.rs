@@ -341,6 +341,7 @@ async fn bad_requests_are_refused_with_the_right_code_and_a_clear_message() {
         Limits {
             max_displacement_m: 0.2,
             max_interaction_points: 256,
+            ..Limits::default()
         },
         64 << 10,
     )
@@ -574,4 +575,47 @@ async fn server_reflection_lists_the_deformation_service() {
     assert!(names.contains(&"nak.v1.Deformation".to_owned()), "{names:?}");
     assert!(names.contains(&"grpc.health.v1.Health".to_owned()), "{names:?}");
     server.stop().await;
+}
+
+/// Prior-only requests over few node–point pairs are computed on the connection's thread; more
+/// interaction points or more nodes go to the pool.
+#[test]
+fn the_engine_calls_small_prior_requests_quick() {
+    use nak::engine::{Engine, Request, Selection};
+    let mesh = std::sync::Arc::new(nak::mesh::load(&nak::mesh::MeshSource::Embedded).unwrap());
+    let engine = Engine::new(mesh.clone(), Limits::default());
+    let grasping = |points: usize, selection: Selection| {
+        let request = Request {
+            grasps: vec![nak::engine::Grasp {
+                nodes: mesh.surface_nodes[..points].to_vec(),
+                displacement: [0.0, 0.01, 0.0],
+                ..Default::default()
+            }],
+            selection,
+            ..Default::default()
+        };
+        let prepared = engine.prepare(&request).unwrap();
+        engine.is_quick(&prepared, &request)
+    };
+    let most = Limits::default().quick_terms / mesh.node_count();
+    assert!(grasping(20, Selection::All));
+    assert!(grasping(most, Selection::All));
+    assert!(!grasping(most + 1, Selection::All));
+    // The surface alone has fewer nodes, so more points stay quick.
+    assert!(grasping(most + 1, Selection::Surface));
+    let pooled = Engine::new(
+        mesh.clone(),
+        Limits {
+            quick_terms: 0,
+            ..Limits::default()
+        },
+    );
+    let request = Request {
+        grasps: vec![nak::engine::Grasp {
+            nodes: vec![mesh.surface_nodes[0]],
+            ..Default::default()
+        }],
+        ..Default::default()
+    };
+    assert!(!pooled.is_quick(&pooled.prepare(&request).unwrap(), &request));
 }

@@ -8,6 +8,7 @@
 //! are timed apart: under overload, how fast a refusal comes matters as much as an answer. Requests are drawn from the paper's
 //! distribution p over the mesh the server reports, reproducibly from the seed.
 
+mod pacer;
 mod report;
 mod requests;
 
@@ -65,6 +66,8 @@ pub enum BenchError {
     Requests(#[from] RequestsError),
     #[error("invalid configuration: {0}")]
     Config(String),
+    #[error("cannot make the open-loop timer: {0}")]
+    Timer(#[from] std::io::Error),
 }
 
 /// A live view of a running test, for progress displays.
@@ -85,6 +88,8 @@ struct Tally {
     answered: Mutex<Histogram<u64>>,
     refused: Mutex<Histogram<u64>>,
     server: Mutex<Histogram<u64>>,
+    queue: Mutex<Histogram<u64>>,
+    generator: Mutex<Histogram<u64>>,
     errors: Mutex<BTreeMap<String, u64>>,
     intervals: Option<Intervals>,
     completed: AtomicU64,
@@ -130,6 +135,8 @@ impl Tally {
             answered: Mutex::new(histogram()?),
             refused: Mutex::new(histogram()?),
             server: Mutex::new(histogram()?),
+            queue: Mutex::new(histogram()?),
+            generator: Mutex::new(histogram()?),
             errors: Mutex::new(BTreeMap::new()),
             intervals,
             completed: AtomicU64::new(0),
@@ -144,18 +151,24 @@ impl Tally {
         }
     }
 
+    fn in_window(&self, due: Instant) -> bool {
+        due >= self.window.0 && due < self.window.1
+    }
+
+    /// Records how long after its due time a request was handed to the gRPC client.
+    fn record_sent(&self, due: Instant, sent: Instant) {
+        if self.in_window(due) {
+            record(&self.generator, (sent - due).as_micros().max(1) as u64);
+        }
+    }
+
     /// Records one answer to a request due at `due`; answers to requests due outside the window are
     /// not counted.
-    fn record(&self, due: Instant, outcome: Result<f32, String>) {
-        if due < self.window.0 || due >= self.window.1 {
+    fn record(&self, due: Instant, outcome: Result<ServerTime, String>) {
+        if !self.in_window(due) {
             return;
         }
         let micros = due.elapsed().as_micros().max(1) as u64;
-        let record = |h: &Mutex<Histogram<u64>>, value: u64| {
-            if let Ok(mut h) = h.lock() {
-                h.saturating_record(value);
-            }
-        };
         record(&self.latency, micros);
         self.completed.fetch_add(1, Ordering::Relaxed);
         if let Some(intervals) = &self.intervals {
@@ -168,9 +181,10 @@ impl Tally {
             }
         }
         match outcome {
-            Ok(server_us) => {
+            Ok(server) => {
                 record(&self.answered, micros);
-                record(&self.server, server_us.max(1.0) as u64);
+                record(&self.server, server.total_us.max(1.0) as u64);
+                record(&self.queue, server.queue_us.max(1.0) as u64);
             }
             Err(code) => {
                 record(&self.refused, micros);
@@ -219,6 +233,28 @@ impl Tally {
     }
 }
 
+fn record(h: &Mutex<Histogram<u64>>, value: u64) {
+    if let Ok(mut h) = h.lock() {
+        h.saturating_record(value);
+    }
+}
+
+/// The server's account of one answer (`Timing`).
+#[derive(Debug, Clone, Copy, Default)]
+struct ServerTime {
+    total_us: f32,
+    queue_us: f32,
+}
+
+impl ServerTime {
+    fn of(timing: Option<crate::proto::v1::Timing>) -> Self {
+        timing.map_or_else(Self::default, |t| Self {
+            total_us: t.total_us,
+            queue_us: t.queue_us,
+        })
+    }
+}
+
 /// `INVALID_ARGUMENT` for `Code::InvalidArgument`: the names gRPC documentation uses.
 fn code_name(code: tonic::Code) -> String {
     let camel = format!("{code:?}");
@@ -232,6 +268,9 @@ fn code_name(code: tonic::Code) -> String {
     name
 }
 
+/// The largest HTTP/2 frame (2²⁴ − 1 bytes, RFC 9113 §4.2).
+pub const MAX_FRAME_SIZE: u32 = (1 << 24) - 1;
+
 /// A client tuned for full-field answers (large flow-control windows, no Nagle).
 pub async fn connect(target: &str) -> Result<DeformationClient<Channel>, BenchError> {
     let error = |source| BenchError::Connect {
@@ -243,7 +282,10 @@ pub async fn connect(target: &str) -> Result<DeformationClient<Channel>, BenchEr
         .tcp_nodelay(true)
         // A full field is ~116 kB: a window that holds it avoids a flow-control round trip per answer.
         .initial_stream_window_size(4 << 20)
-        .initial_connection_window_size(8 << 20);
+        .initial_connection_window_size(8 << 20)
+        // gRPC's default 16 KiB frames cut a full field into eight DATA frames, each framed and
+        // written on its own; the largest frame HTTP/2 allows carries it in one.
+        .max_frame_size(MAX_FRAME_SIZE);
     let channel = endpoint.connect().await.map_err(error)?;
     Ok(DeformationClient::new(channel).max_decoding_message_size(256 << 20))
 }
@@ -297,7 +339,7 @@ pub async fn run(config: &BenchConfig, progress: impl Fn(Progress)) -> Result<Re
         };
     }
     if let Some(rate) = config.rate {
-        std::thread::spawn(move || pace(rate, start, end, pacer_queues));
+        tokio::spawn(pace(pacer::Pacer::new()?, rate, start, end, pacer_queues));
     }
     let total = end - start;
     let mut ticker = tokio::time::interval(Duration::from_millis(250));
@@ -313,6 +355,8 @@ pub async fn run(config: &BenchConfig, progress: impl Fn(Progress)) -> Result<Re
     let answered = Tally::snapshot(&tally.answered)?;
     let refused = Tally::snapshot(&tally.refused)?;
     let server = Tally::snapshot(&tally.server)?;
+    let queue = Tally::snapshot(&tally.queue)?;
+    let generator = Tally::snapshot(&tally.generator)?;
     let requests = latency.len();
     Ok(Report {
         target: config.target.clone(),
@@ -332,6 +376,8 @@ pub async fn run(config: &BenchConfig, progress: impl Fn(Progress)) -> Result<Re
         answered_us: Percentiles::of(&answered),
         refused_us: (!refused.is_empty()).then(|| Percentiles::of(&refused)),
         server_us: Percentiles::of(&server),
+        server_queue_us: Percentiles::of(&queue),
+        generator_us: Percentiles::of(&generator),
         errors: tally.errors.lock().map(|e| e.clone()).unwrap_or_default(),
         intervals: tally.intervals(),
     })
@@ -355,22 +401,26 @@ fn request(pool: &[PredictRequest], k: u64) -> PredictRequest {
     r
 }
 
-/// Releases request k at `start + k / rate` to worker `k mod workers`, from its own thread.
-///
-/// tokio's timers tick in whole milliseconds, which would add up to 1 ms of the load generator's own
-/// lateness to every open-loop latency; a thread sleeping with `nanosleep` is late by tens of µs.
-fn pace(rate: f64, start: Instant, end: Instant, workers: Vec<tokio::sync::mpsc::UnboundedSender<(u64, Instant)>>) {
-    let (start, end) = (start.into_std(), end.into_std());
+const EARLY_US: u64 = 100;
+/// Releases request k at `start + k / rate` to worker `k mod workers`.
+async fn pace(
+    mut pacer: pacer::Pacer,
+    rate: f64,
+    start: Instant,
+    end: Instant,
+    workers: Vec<tokio::sync::mpsc::UnboundedSender<(u64, Instant)>>,
+) {
     for k in 0u64.. {
         let due = start + Duration::from_secs_f64(k as f64 / rate);
         if due >= end {
             break;
         }
-        if let Some(wait) = due.checked_duration_since(std::time::Instant::now()) {
-            std::thread::sleep(wait);
+        if let Err(e) = pacer.until(due, std::time::Duration::from_micros(EARLY_US)).await {
+            tracing::error!("the open-loop timer failed, no more requests are sent: {e}");
+            break;
         }
         // A worker that has gone (its connection failed) simply receives no more.
-        let _ = workers[(k % workers.len() as u64) as usize].send((k, Instant::from_std(due)));
+        let _ = workers[(k % workers.len() as u64) as usize].send((k, due));
     }
 }
 
@@ -408,8 +458,9 @@ impl Job {
     }
 
     async fn call(mut client: DeformationClient<Channel>, request: PredictRequest, due: Instant, tally: Arc<Tally>) {
+        tally.record_sent(due, Instant::now());
         let outcome = match client.predict(request).await {
-            Ok(r) => Ok(r.into_inner().timing.map_or(0.0, |t| t.total_us)),
+            Ok(r) => Ok(ServerTime::of(r.into_inner().timing)),
             Err(status) => Err(code_name(status.code())),
         };
         tally.record(due, outcome);
@@ -437,6 +488,7 @@ impl Job {
         let tally = self.tally.clone();
         let sender = {
             let due_times = due_times.clone();
+            let tally_sent = tally.clone();
             tokio::spawn(async move {
                 let mut first = true;
                 loop {
@@ -450,6 +502,7 @@ impl Job {
                     if let Ok(mut d) = due_times.lock() {
                         d.push_back(due);
                     }
+                    tally_sent.record_sent(due, Instant::now());
                     if tx.send(request(&pool, k)).await.is_err() {
                         break;
                     }
@@ -464,7 +517,7 @@ impl Job {
             let (outcome, last) = match answer {
                 Ok(Some(r)) => match r.error {
                     Some(e) => (Err(code_name(tonic::Code::from_i32(e.code))), false),
-                    None => (Ok(r.timing.map_or(0.0, |t| t.total_us)), false),
+                    None => (Ok(ServerTime::of(r.timing)), false),
                 },
                 Ok(None) => break,
                 Err(status) => (Err(code_name(status.code())), true),

@@ -17,7 +17,8 @@ use super::engine::{ModelArgs, build_engine};
 #[derive(clap::Args)]
 pub struct ServeArgs {
     /// TOML file with any of: mesh, models, ort_dylib, listen, max_displacement_mm,
-    /// max_interaction_points, max_message_bytes, max_in_flight, compute_niceness. Flags override it.
+    /// max_interaction_points, quick_terms, max_message_bytes, max_in_flight, compute_niceness. Flags
+    /// override it.
     #[arg(long)]
     config: Option<PathBuf>,
     /// A model directory (its default mesh) or an .msh file with model.toml beside it
@@ -33,6 +34,11 @@ pub struct ServeArgs {
     /// Most interaction points (grasped nodes) per request [default: 256].
     #[arg(long)]
     max_interaction_points: Option<usize>,
+    /// Prior-only requests over at most this many node–point pairs (nodes answered × interaction
+    /// points) are computed on the thread that read them, saving two thread hand-offs; larger ones
+    /// and every network go to the compute pool. 0 sends every request to the pool [default: 524288].
+    #[arg(long)]
+    quick_terms: Option<usize>,
     /// Largest request message, bytes [default: 1048576].
     #[arg(long)]
     max_message_bytes: Option<usize>,
@@ -106,6 +112,7 @@ fn serve_config(args: ServeArgs) -> anyhow::Result<ServeConfig> {
     config.listen = args.listen.unwrap_or(config.listen);
     config.max_displacement_mm = args.max_displacement_mm.unwrap_or(config.max_displacement_mm);
     config.max_interaction_points = args.max_interaction_points.unwrap_or(config.max_interaction_points);
+    config.quick_terms = args.quick_terms.unwrap_or(config.quick_terms);
     config.max_message_bytes = args.max_message_bytes.unwrap_or(config.max_message_bytes);
     config.max_in_flight = args.max_in_flight.unwrap_or(config.max_in_flight);
     config.compute_niceness = args.compute_niceness.unwrap_or(config.compute_niceness);

@@ -24,6 +24,8 @@ pub struct Limits {
     pub max_displacement_m: f64,
     /// Most interaction points (grasped nodes) in one request.
     pub max_interaction_points: usize,
+    /// Node–point pairs up to which a prior-only request is quick ([`Engine::is_quick`]); 0: none is.
+    pub quick_terms: usize,
 }
 
 impl Default for Limits {
@@ -31,6 +33,7 @@ impl Default for Limits {
         Self {
             max_displacement_m: 0.2,
             max_interaction_points: 256,
+            quick_terms: QUICK_TERMS,
         }
     }
 }
@@ -80,9 +83,23 @@ pub struct Request {
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct Timing {
     pub resolve_us: f32,
+    /// Between [`Engine::prepare`] and [`Engine::compute`]: waiting for a compute thread.
+    pub queue_us: f32,
     pub prior_us: f32,
     pub network_us: f32,
     pub total_us: f32,
+}
+
+/// The default [`Limits::quick_terms`]: about 150 µs of field on one core of the machine in
+/// docs/latency.md, the phantom (9,701 nodes) with up to 54 interaction points.
+pub const QUICK_TERMS: usize = 1 << 19;
+
+/// A request checked and with its grasps resolved, ready for [`Engine::compute`] on any thread.
+pub struct Prepared {
+    model: Arc<dyn DeformationModel>,
+    scratch: Scratch,
+    start: Instant,
+    resolved: Instant,
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -198,6 +215,13 @@ impl Engine {
     }
 
     pub fn predict(&self, request: &Request) -> Result<Prediction, EngineError> {
+        let prepared = self.prepare(request)?;
+        self.compute(prepared, request)
+    }
+
+    /// Checks the mesh and the model and resolves the grasps to interaction points: microseconds,
+    /// and enough to tell how much work the rest is ([`Self::is_quick`]).
+    pub fn prepare(&self, request: &Request) -> Result<Prepared, EngineError> {
         let start = Instant::now();
         if !self.serves_mesh(&request.mesh) {
             return Err(EngineError::NotFound(format!(
@@ -217,7 +241,40 @@ impl Engine {
             ))
         })?;
         let mut scratch = self.take_scratch();
-        let result = self.run(model.as_ref(), request, &mut scratch, start);
+        if let Err(e) = grasp::resolve(&self.mesh, &self.limits, &request.grasps, &mut scratch.points) {
+            self.return_scratch(scratch);
+            return Err(e);
+        }
+        Ok(Prepared {
+            model: model.clone(),
+            scratch,
+            start,
+            resolved: Instant::now(),
+        })
+    }
+
+    /// Whether computing `prepared` costs less than handing it to another thread and back: a prior
+    /// alone (no network, no solve over the mesh) over at most [`Limits::quick_terms`] node–point
+    /// pairs.
+    pub fn is_quick(&self, prepared: &Prepared, request: &Request) -> bool {
+        let nodes = match &request.selection {
+            Selection::All => self.mesh.node_count(),
+            Selection::Surface => self.mesh.surface_nodes.len(),
+            Selection::List(nodes) => nodes.len(),
+        };
+        prepared.model.info().kind == ModelKind::Prior
+            && nodes.saturating_mul(prepared.scratch.points.len()) <= self.limits.quick_terms
+    }
+
+    /// Runs the model of a request [`Self::prepare`]d, on whatever thread calls it.
+    pub fn compute(&self, prepared: Prepared, request: &Request) -> Result<Prediction, EngineError> {
+        let Prepared {
+            model,
+            mut scratch,
+            start,
+            resolved,
+        } = prepared;
+        let result = self.run(model.as_ref(), request, &mut scratch, start, resolved);
         self.return_scratch(scratch);
         result
     }
@@ -228,8 +285,9 @@ impl Engine {
         request: &Request,
         scratch: &mut Scratch,
         start: Instant,
+        resolved: Instant,
     ) -> Result<Prediction, EngineError> {
-        grasp::resolve(&self.mesh, &self.limits, &request.grasps, &mut scratch.points)?;
+        let computing = Instant::now();
         let n = self.mesh.node_count();
         let listed;
         let target = match &request.selection {
@@ -257,7 +315,6 @@ impl Engine {
                 }
             }
         };
-        let resolved = Instant::now();
         let mut displacements = vec![0.0f32; 3 * target.cloud.len()];
         let mut stages = StageTiming::default();
         scratch.point_forces.clear();
@@ -284,6 +341,7 @@ impl Engine {
         };
         let timing = Timing {
             resolve_us: (resolved - start).as_secs_f32() * 1e6,
+            queue_us: (computing - resolved).as_secs_f32() * 1e6,
             prior_us: stages.prior_us,
             network_us: stages.network_us,
             total_us: start.elapsed().as_secs_f32() * 1e6,

@@ -19,6 +19,11 @@ pub const BLOCK: usize = 64;
 /// Below this many nodes one core is faster than the cost of waking others.
 const PARALLEL_MIN_NODES: usize = 4096;
 
+/// From a thread outside rayon's pool (a quick request answered on the connection's thread), the
+/// whole field is handed to the pool and waited for: about 80 µs of wake-ups on a small virtual
+/// machine, worth paying only for fields several times that long (node–point pairs).
+const HANDOVER_MIN_TERMS: usize = 1 << 21;
+
 /// Positions of the nodes a field is evaluated at: f32, structure of arrays, in whole blocks (the
 /// last one padded with zeros, whose results are never written out).
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -118,7 +123,9 @@ impl Kelvinlet {
                 chunk,
             );
         };
-        if cloud.len >= PARALLEL_MIN_NODES {
+        let terms = cloud.len.saturating_mul(coefficients.len());
+        let in_pool = rayon::current_thread_index().is_some();
+        if cloud.len >= PARALLEL_MIN_NODES && (in_pool || terms >= HANDOVER_MIN_TERMS) {
             out.par_chunks_mut(3 * BLOCK).enumerate().with_min_len(8).for_each(run);
         } else {
             out.chunks_mut(3 * BLOCK).enumerate().for_each(run);

@@ -107,6 +107,7 @@ pub fn response(sequence: u64, prediction: Prediction) -> pb::PredictResponse {
             prior_us: t.prior_us,
             network_us: t.network_us,
             total_us: t.total_us,
+            queue_us: t.queue_us,
         }),
         model: prediction.model,
         interaction_points: prediction.interaction_points as u32,

@@ -46,6 +46,9 @@ pub struct ServeConfig {
     /// Largest grasp displacement accepted, in millimetres.
     pub max_displacement_mm: f64,
     pub max_interaction_points: usize,
+    /// Node–point pairs up to which a prior-only request is computed on the connection's thread
+    /// instead of the compute pool; 0 sends every request to the pool.
+    pub quick_terms: usize,
     /// Largest request message accepted, in bytes; larger ones get RESOURCE_EXHAUSTED.
     pub max_message_bytes: usize,
     /// Most requests admitted to the compute pool at once; more get RESOURCE_EXHAUSTED at once.
@@ -76,6 +79,7 @@ impl Default for ServeConfig {
             listen: SocketAddr::from(([127, 0, 0, 1], 50051)),
             max_displacement_mm: limits.max_displacement_m * 1e3,
             max_interaction_points: limits.max_interaction_points,
+            quick_terms: limits.quick_terms,
             max_message_bytes: 1 << 20,
             max_in_flight: 0,
             compute_niceness: DEFAULT_COMPUTE_NICENESS,
@@ -121,6 +125,7 @@ impl ServeConfig {
         Limits {
             max_displacement_m: self.max_displacement_mm * 1e-3,
             max_interaction_points: self.max_interaction_points,
+            quick_terms: self.quick_terms,
         }
     }
 }
