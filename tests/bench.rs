@@ -48,6 +48,13 @@ async fn open_loop_sends_exactly_the_offered_load_in_both_modes() {
         let l = report.latency_us;
         assert!(l.p50 <= l.p90 && l.p90 <= l.p99 && l.p99 <= l.p999 && l.p999 <= l.max);
         assert!(report.server_us.p50 > 0.0);
+        // Every request was handed to the client after it was due and before it was answered.
+        let g = report.generator_us;
+        assert!(
+            g.p50 >= 1.0 && g.max <= l.max,
+            "{mode:?}: generator {g:?}, latency {l:?}"
+        );
+        assert!(report.server_queue_us.p50 <= report.server_us.p50);
     }
     server.stop().await;
 }

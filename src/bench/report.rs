@@ -64,6 +64,11 @@ pub struct Report {
     pub refused_us: Option<Percentiles>,
     /// The server's own `Timing.total_us`, for the successful answers.
     pub server_us: Percentiles,
+    /// The part of it spent waiting for a compute thread (`Timing.queue_us`).
+    pub server_queue_us: Percentiles,
+    /// How long after its due time each request was handed to the gRPC client: the load
+    /// generator's own delay, which `latency_us` includes.
+    pub generator_us: Percentiles,
     /// By gRPC status code name.
     pub errors: BTreeMap<String, u64>,
     /// Per `--interval`, in order; empty without it.
@@ -107,7 +112,9 @@ impl Report {
             "target      {}\nmodel       {} ({}, {} grasper(s), concurrency {}, offered {})\n\
              requests    {} in {:.1} s = {:.0}/s\n\
              latency µs  p50 {:.0}  p90 {:.0}  p99 {:.0}  p99.9 {:.0}  max {:.0}  mean {:.0}{split}{intervals}\n\
-             server µs   p50 {:.0}  p99 {:.0}\n\
+             server µs   p50 {:.0}  p99 {:.0}  (waiting for a compute thread p50 {:.0})\n\
+             generator   p50 {:.0}  p99 {:.0} µs after the due time\n\
+             outside     p50 {:.0} µs: latency − server − generator (client and transport)\n\
              errors      {}",
             self.target,
             self.model,
@@ -126,6 +133,10 @@ impl Report {
             l.mean,
             s.p50,
             s.p99,
+            self.server_queue_us.p50,
+            self.generator_us.p50,
+            self.generator_us.p99,
+            (l.p50 - s.p50 - self.generator_us.p50).max(0.0),
             errors
         )
     }
