@@ -7,7 +7,6 @@ use std::sync::Arc;
 use criterion::{Criterion, criterion_group, criterion_main};
 use nak::engine::Engine;
 use nak::mesh::{self, MeshSource};
-use nak::proto::v1::deformation_client::DeformationClient;
 use nak::proto::v1::{Grasp, PredictRequest, Vec3};
 use tokio::runtime::Runtime;
 
@@ -45,12 +44,10 @@ fn serve(c: &mut Criterion) {
         .enable_all()
         .build()
         .expect("client runtime");
-    let endpoint = tonic::transport::Endpoint::from_shared(format!("http://{address}"))
-        .expect("uri")
-        .initial_stream_window_size(4 << 20)
-        .initial_connection_window_size(8 << 20)
-        .tcp_nodelay(true);
-    let mut client = DeformationClient::new(client_runtime.block_on(endpoint.connect()).expect("connect"));
+    // nak's own client settings (large windows and frames, no Nagle), as `nak bench` uses.
+    let mut client = client_runtime
+        .block_on(nak::bench::connect(&format!("http://{address}")))
+        .expect("connect");
     let mut group = c.benchmark_group("loopback");
     group.bench_function("unary_predict_k20", |b| {
         b.to_async(&client_runtime).iter(|| {
