@@ -269,7 +269,7 @@ fn code_name(code: tonic::Code) -> String {
 }
 
 /// The largest HTTP/2 frame (2²⁴ − 1 bytes, RFC 9113 §4.2).
-pub const MAX_FRAME_SIZE: u32 = (1 << 24) - 1;
+const MAX_FRAME_SIZE: u32 = (1 << 24) - 1;
 
 /// A client tuned for full-field answers (large flow-control windows, no Nagle).
 pub async fn connect(target: &str) -> Result<DeformationClient<Channel>, BenchError> {

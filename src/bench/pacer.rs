@@ -36,7 +36,7 @@ impl Pacer {
     /// Returns at `due`, or at once if it has passed: the timer fires `early` before, and the rest
     /// is spun on this thread.
     pub async fn until(&mut self, due: Instant, early: Duration) -> io::Result<()> {
-        self.sleep_until(due - early).await?;
+        self.sleep_until(due.checked_sub(early).unwrap_or(due)).await?;
         while Instant::now() < due {
             std::hint::spin_loop();
         }

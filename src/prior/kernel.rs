@@ -4,7 +4,8 @@
 //! accumulates its field in registers/L1 over all interaction points, then writes interleaved
 //! (N, 3) rows. The block function is compiled for several x86-64 feature levels and picked at run
 //! time (AVX-512, AVX2+FMA, SSE4.1, baseline), so one portable binary runs at the speed of the CPU it
-//! finds. Blocks are spread over cores for large meshes.
+//! finds. Blocks are spread over cores for large meshes, from rayon's pool (or from outside it
+//! when the field is large enough to pay for handing it over).
 
 use multiversion::multiversion;
 use multiversion::target::target_cfg;
@@ -212,8 +213,13 @@ fn field_block(
         }
     }
     let mut u = [[0.0f32; BLOCK]; 3];
-    for lane in (0..BLOCK).step_by(LANES) {
-        let node = [xs, ys, zs].map(|v| -> &[f32; LANES] { v[lane..lane + LANES].try_into().unwrap_or(&[0.0; LANES]) });
+    let (xs, ys, zs) = (
+        xs.as_chunks::<LANES>().0,
+        ys.as_chunks::<LANES>().0,
+        zs.as_chunks::<LANES>().0,
+    );
+    for (chunk, lane) in (0..BLOCK).step_by(LANES).enumerate() {
+        let node = [&xs[chunk], &ys[chunk], &zs[chunk]];
         // Even and odd points into separate sums: two independent FMA chains keep the FMA units
         // busy where one would wait on its own latency.
         let mut even = [[0.0f32; LANES]; 3];

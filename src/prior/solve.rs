@@ -95,9 +95,9 @@ fn default_params() -> Spec<LltParams, f64> {
     Spec::default()
 }
 
-/// Resizes `buffer` to `len` values and views it as a column-major `rows × cols` matrix.
+/// Views `buffer`, resized to `rows × cols` values, as a column-major matrix; old values stay
+/// (every caller overwrites what it reads).
 fn matrix(buffer: &mut Vec<f64>, rows: usize, cols: usize) -> MatMut<'_, f64> {
-    buffer.clear();
     buffer.resize(rows * cols, 0.0);
     MatMut::from_column_major_slice_mut(buffer, rows, cols)
 }
@@ -130,14 +130,11 @@ impl Kelvinlet {
         }
         let gamma = MatRef::from_column_major_slice(&ws.gamma, n, n);
         let mut normal = matrix(&mut ws.normal, n, n);
-        for d in 0..n {
-            normal[(d, d)] = self.params.lambda;
-        }
-        // Lower triangle of ΓΓ + λI (ΓᵀΓ = ΓΓ, Γ symmetric).
+        // Lower triangle of ΓΓ + λI (ΓᵀΓ = ΓΓ, Γ symmetric); the upper one is never read.
         matmul(
             normal.as_mut(),
             BlockStructure::TriangularLower,
-            Accum::Add,
+            Accum::Replace,
             gamma,
             BlockStructure::Rectangular,
             gamma,
@@ -145,6 +142,9 @@ impl Kelvinlet {
             1.0,
             Par::Seq,
         );
+        for d in 0..n {
+            normal[(d, d)] += self.params.lambda;
+        }
         let mut rhs = matrix(&mut ws.rhs, n, 1);
         let u = MatRef::from_column_major_slice(points.displacements.as_flattened(), n, 1);
         faer::linalg::matmul::matmul(rhs.as_mut(), Accum::Replace, gamma, u, 1.0, Par::Seq);
