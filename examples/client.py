@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import tempfile
 from pathlib import Path
 from types import ModuleType
+from typing import Any
 
 import grpc
 import numpy as np
@@ -35,6 +36,16 @@ def load_stubs() -> tuple[ModuleType, ModuleType]:
 
 
 BEST_MODEL = "pod-res-big"
+
+
+def two_graspers(pb: ModuleType, mesh: Any) -> list[Any]:
+    """Two graspers of ten nodes each (grasp regions 3 and 8) moved apart: K = 20, the size of the
+    paper's two-grasper requests on average; the scripts that time the prior all send these."""
+    sets = {s.name: list(s.nodes) for s in mesh.node_sets}
+    return [
+        pb.Grasp(nodes=sets["grasp_03"][:10], displacement=pb.Vec3(x=0.01, y=0.03, z=-0.01)),
+        pb.Grasp(nodes=sets["grasp_08"][:10], displacement=pb.Vec3(x=-0.02, y=0.02, z=0.015)),
+    ]
 
 
 @dataclass

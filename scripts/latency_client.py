@@ -52,18 +52,6 @@ def percentiles(us: list[float]) -> dict[str, float]:
     }
 
 
-def two_graspers(pb: Any, stub: Any) -> Any:
-    mesh = stub.GetMesh(pb.GetMeshRequest())
-    sets = {s.name: list(s.nodes) for s in mesh.node_sets}
-    return pb.PredictRequest(
-        model="kelvinlet",
-        grasps=[
-            pb.Grasp(nodes=sets["grasp_03"][:10], displacement=pb.Vec3(x=0.01, y=0.03, z=-0.01)),
-            pb.Grasp(nodes=sets["grasp_08"][:10], displacement=pb.Vec3(x=-0.02, y=0.02, z=0.015)),
-        ],
-    )
-
-
 def run_unary(
     stub: Any, request: Any, rate: float | None, warmup: float, duration: float
 ) -> tuple[list[float], list[float]]:
@@ -134,7 +122,8 @@ def main() -> None:
     options.append(("grpc.max_receive_message_length", 64 << 20))
     with grpc.insecure_channel(args.target, options=options) as channel:
         stub = rpc.DeformationStub(channel)
-        request = two_graspers(pb, stub)
+        mesh = stub.GetMesh(pb.GetMeshRequest())
+        request = pb.PredictRequest(model="kelvinlet", grasps=client.two_graspers(pb, mesh))
         if args.mode == "unary":
             latency, server = run_unary(stub, request, args.rate, args.warmup, args.duration)
         else:

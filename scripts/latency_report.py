@@ -15,7 +15,6 @@ import os
 import platform
 import subprocess
 import sys
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,6 +23,8 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+
+import local_server  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 PORT = 50093
@@ -57,24 +58,6 @@ LOADS = [
         ["--mode", "stream", "--rate", "1000"],
     ),
 ]
-
-
-class Server:
-    def __init__(self, binary: Path, log: Path) -> None:
-        self.log = log
-        self.process = subprocess.Popen(
-            [str(binary), "serve", "--listen", f"127.0.0.1:{PORT}", "--log-format", "json"],
-            stderr=log.open("w"),
-        )
-        deadline = time.monotonic() + 60
-        while '"listening"' not in log.read_text():
-            if self.process.poll() is not None or time.monotonic() > deadline:
-                raise RuntimeError(f"{binary} serve did not start; see {log}")
-            time.sleep(0.1)
-
-    def stop(self) -> None:
-        self.process.terminate()
-        self.process.wait(timeout=30)
 
 
 def nak_bench(binary: Path, load: Load, out: Path, seconds: int) -> dict[str, Any]:
@@ -112,7 +95,8 @@ def measure(args: argparse.Namespace) -> None:
     data.mkdir(parents=True, exist_ok=True)
     results: dict[str, Any] = {}
     for side, binary in [("before", args.before), ("after", args.after)]:
-        server = Server(binary, data / f"server-{side}.log")
+        command = [str(binary), "serve", "--listen", f"127.0.0.1:{PORT}", "--log-format", "json"]
+        server = local_server.start(command, data / f"server-{side}.log")
         try:
             for load in LOADS:
                 print(f"{side}: {load.label}", flush=True)
@@ -128,7 +112,8 @@ def measure(args: argparse.Namespace) -> None:
                     args.before, unary, data / "old-bench.json", args.seconds
                 )
         finally:
-            server.stop()
+            server.terminate()
+            server.wait(timeout=30)
     (data / "results.json").write_text(json.dumps(results, indent=2) + "\n")
 
 

@@ -60,11 +60,7 @@ def torch_reference(target: str, out: Path, repeats: int) -> None:
     with grpc.insecure_channel(target) as channel:
         stub = rpc.DeformationStub(channel)
         mesh = stub.GetMesh(pb.GetMeshRequest())
-        sets = {s.name: list(s.nodes) for s in mesh.node_sets}
-        grasps = [
-            pb.Grasp(nodes=sets["grasp_03"][:10], displacement=pb.Vec3(x=0.01, y=0.03, z=-0.01)),
-            pb.Grasp(nodes=sets["grasp_08"][:10], displacement=pb.Vec3(x=-0.02, y=0.02, z=0.015)),
-        ]
+        grasps = client.two_graspers(pb, mesh)
         served = stub.Predict(pb.PredictRequest(model="kelvinlet", grasps=grasps))
     positions = torch.from_numpy(np.frombuffer(mesh.positions, dtype="<f4").reshape(-1, 3).copy())
     nodes = [n for g in grasps for n in g.nodes]

@@ -30,6 +30,8 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+import local_server  # noqa: E402
+
 ROOT = Path(__file__).resolve().parent.parent
 NAK = ROOT / "target" / "release" / "nak"
 DATA = ROOT / "target" / "reliability"
@@ -42,20 +44,15 @@ class Server:
 
     def __init__(self, port: int, every_s: float, *flags: str, cpus: str | None = None) -> None:
         self.log_path = DATA / f"server-{port}.log"
-        self.log = self.log_path.open("w")
-        self.process = subprocess.Popen(
+        self.process = local_server.start(
             [*pinned(cpus), str(NAK), "serve", "--listen", f"127.0.0.1:{port}", "--log-format", "json", *flags],
-            stderr=self.log,
+            self.log_path,
         )
         self.target = f"http://127.0.0.1:{port}"
         self.started = time.monotonic()
         self.rss: list[tuple[float, float]] = []  # (seconds since start, MiB)
         self.every_s = every_s
         self.stopping = threading.Event()
-        while '"listening"' not in self.log_path.read_text():
-            if self.process.poll() is not None:
-                raise SystemExit(f"nak serve exited: see {self.log_path}")
-            time.sleep(0.2)
         self._sample_once()
         self.sampler = threading.Thread(target=self._sample, daemon=True)
         self.sampler.start()
@@ -81,9 +78,7 @@ class Server:
     def stop(self) -> int:
         self.stopping.set()
         self.process.terminate()
-        code = self.process.wait(timeout=30)
-        self.log.close()
-        return code
+        return self.process.wait(timeout=30)
 
 
 def pinned(cpus: str | None) -> list[str]:
