@@ -35,8 +35,7 @@ fn serve(c: &mut Criterion) {
     server_runtime.spawn(nak::serve::run(
         engine,
         listener,
-        nak::serve::Intake::with_message_limit(1 << 20),
-        None,
+        nak::serve::Options::new(nak::serve::Intake::with_message_limit(1 << 20)),
         std::future::pending(),
     ));
 
@@ -46,7 +45,9 @@ fn serve(c: &mut Criterion) {
         .expect("client runtime");
     // nak's own client settings (large windows and frames, no Nagle), as `nak bench` uses.
     let mut client = client_runtime
-        .block_on(nak::bench::connect(&format!("http://{address}")))
+        .block_on(nak::client::connect(&nak::client::ClientConfig::new(format!(
+            "http://{address}"
+        ))))
         .expect("connect");
     let mut group = c.benchmark_group("loopback");
     group.bench_function("unary_predict_k20", |b| {

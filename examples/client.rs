@@ -1,10 +1,13 @@
 //! A minimal nak client: fetch the mesh, lift grasp region 4 by 2 cm, print what came back (the
 //! field's reach, the server's time and, from models that give them, the grasper's force).
 //!
-//! Start a server (`cargo run --release -- serve`), then `cargo run --release --example client [URL [MODEL]]`.
-//! MODEL defaults to the most accurate network shipped with the phantom; `kelvinlet` is the prior alone.
+//! Start a server (`cargo run --release -- serve`), then `cargo run --release --example client [URLS [MODEL]]`.
+//! URLS: one server or several, comma-separated (or a name resolving to several, a Kubernetes headless
+//! Service): requests are spread over all of them. MODEL defaults to the most accurate network shipped
+//! with the phantom; `kelvinlet` is the prior alone. For a server with TLS and a token, set
+//! NAK_TLS_CA (PEM) and NAK_AUTH_TOKEN_FILE.
 
-use nak::proto::v1::deformation_client::DeformationClient;
+use nak::client::{ClientConfig, connect};
 use nak::proto::v1::{GetMeshRequest, Grasp, PredictRequest, Vec3};
 
 #[tokio::main]
@@ -13,7 +16,12 @@ async fn main() -> anyhow::Result<()> {
         .nth(1)
         .unwrap_or_else(|| "http://127.0.0.1:50051".into());
     let model = std::env::args().nth(2).unwrap_or_else(|| "pod-res-big".into());
-    let mut client = DeformationClient::connect(target).await?;
+    let config = ClientConfig {
+        tls_ca: std::env::var_os("NAK_TLS_CA").map(Into::into),
+        auth_token_file: std::env::var_os("NAK_AUTH_TOKEN_FILE").map(Into::into),
+        ..ClientConfig::new(target)
+    };
+    let mut client = connect(&config).await?;
     let mesh = client.get_mesh(GetMeshRequest::default()).await?.into_inner();
     let grasp_04 = mesh
         .node_sets

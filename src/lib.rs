@@ -4,6 +4,7 @@
 //! prediction engine ([`engine`]) and the gRPC service ([`serve`]).
 
 pub mod bench;
+pub mod client;
 pub mod data;
 pub mod engine;
 pub mod fem;

@@ -8,6 +8,7 @@ use std::time::Duration;
 use common::models::coarse;
 use common::server::TestServer;
 use nak::bench::{self, BenchConfig, Mode};
+use nak::client::ClientConfig;
 use nak::engine::{Engine, Limits};
 use nak::serve::Intake;
 
@@ -23,7 +24,7 @@ async fn unbounded_server() -> TestServer {
 
 fn config(server: &TestServer, mode: Mode, rate: Option<f64>) -> BenchConfig {
     BenchConfig {
-        target: format!("http://{}", server.address),
+        connection: ClientConfig::new(format!("http://{}", server.address)),
         model: "kelvinlet".into(),
         mode,
         concurrency: 2,
@@ -129,7 +130,7 @@ async fn intervals_split_the_measured_window() {
 #[tokio::test]
 async fn an_unreachable_target_is_a_clear_error() {
     let c = BenchConfig {
-        target: "http://127.0.0.1:1".into(),
+        connection: ClientConfig::new("http://127.0.0.1:1"),
         model: "kelvinlet".into(),
         mode: Mode::Unary,
         concurrency: 1,

@@ -206,3 +206,63 @@ fn predict_serves_onnx_models_too() {
         .fold(0.0f32, f32::max);
     assert!(diff > 1e-5 && diff < 0.02, "{diff}");
 }
+
+#[test]
+fn serve_checks_the_token_exports_metrics_and_warns_when_exposed_without_tls() {
+    let dir = tempfile::tempdir().unwrap();
+    let token = dir.path().join("token");
+    std::fs::write(&token, "s3cret\n").unwrap();
+    let mut serve = nak();
+    serve
+        .args(["serve", "--metrics-listen", "127.0.0.1:0", "--auth-token-file"])
+        .arg(&token);
+    let mut server = ServeProcess::start_on(serve, "0.0.0.0:0");
+    let port = server.address.rsplit_once(':').unwrap().1.to_owned();
+    let metrics = server
+        .wait_for(std::time::Duration::from_secs(10), |r| {
+            r["fields"]["message"] == "metrics listening"
+        })
+        .and_then(|r| r["fields"]["address"].as_str().map(str::to_owned))
+        .expect("the metrics address is logged");
+    let warned = server.wait_for(std::time::Duration::from_secs(10), |r| {
+        r["level"] == "WARN"
+            && r["fields"]["message"]
+                .as_str()
+                .is_some_and(|m| m.contains("without TLS"))
+    });
+    assert!(warned.is_some(), "{:#?}", server.log());
+
+    let bench = |with_token: bool| {
+        let mut bench = nak();
+        bench.args(["bench", "--target", &format!("http://127.0.0.1:{port}")]);
+        bench.args(["--duration", "300ms", "--warmup", "0s", "--concurrency", "1"]);
+        if with_token {
+            bench.arg("--auth-token-file").arg(&token);
+        }
+        bench.output().unwrap()
+    };
+    let refused = bench(false);
+    assert!(!refused.status.success());
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(stderr.contains("requires a valid bearer token"), "{stderr}");
+    let answered = bench(true);
+    assert!(
+        answered.status.success(),
+        "{}",
+        String::from_utf8_lossy(&answered.stderr)
+    );
+
+    let mut stream = std::net::TcpStream::connect(&metrics).unwrap();
+    std::io::Write::write_all(&mut stream, b"GET /metrics HTTP/1.0\r\n\r\n").unwrap();
+    let mut text = String::new();
+    std::io::Read::read_to_string(&mut stream, &mut text).unwrap();
+    let answered: f64 = text
+        .lines()
+        .find_map(|l| l.strip_prefix(r#"nak_requests_total{model="kelvinlet",code="Ok"} "#))
+        .unwrap_or_else(|| panic!("{text}"))
+        .parse()
+        .unwrap();
+    assert!(answered > 10.0, "{text}");
+    let (exit, rest) = server.stop();
+    assert!(exit.success(), "exit {exit:?}; log: {rest:?}");
+}

@@ -19,13 +19,12 @@ use std::time::Duration;
 
 use hdrhistogram::Histogram;
 use tokio::time::Instant;
-use tonic::transport::{Channel, Endpoint};
 
 pub use report::{Interval, Percentiles, Report};
 pub use requests::{RequestsError, draw, sampler_for};
 
+use crate::client::{Client, ClientConfig, ClientError, connect};
 use crate::proto::v1::PredictRequest;
-use crate::proto::v1::deformation_client::DeformationClient;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Mode {
@@ -35,8 +34,8 @@ pub enum Mode {
 
 #[derive(Debug, Clone, PartialEq)]
 pub struct BenchConfig {
-    /// `http://host:port`.
-    pub target: String,
+    /// The servers and how to reach them (several: requests are spread over them).
+    pub connection: ClientConfig,
     pub model: String,
     pub mode: Mode,
     /// Workers (unary) or streams (stream mode), each on its own connection.
@@ -56,12 +55,8 @@ pub struct BenchConfig {
 
 #[derive(Debug, thiserror::Error)]
 pub enum BenchError {
-    #[error("cannot connect to {target}: {source}")]
-    Connect {
-        target: String,
-        #[source]
-        source: tonic::transport::Error,
-    },
+    #[error(transparent)]
+    Connect(#[from] ClientError),
     #[error(transparent)]
     Requests(#[from] RequestsError),
     #[error("invalid configuration: {0}")]
@@ -268,28 +263,6 @@ fn code_name(code: tonic::Code) -> String {
     name
 }
 
-/// The largest HTTP/2 frame (2²⁴ − 1 bytes, RFC 9113 §4.2).
-const MAX_FRAME_SIZE: u32 = (1 << 24) - 1;
-
-/// A client tuned for full-field answers (large flow-control windows, no Nagle).
-pub async fn connect(target: &str) -> Result<DeformationClient<Channel>, BenchError> {
-    let error = |source| BenchError::Connect {
-        target: target.to_owned(),
-        source,
-    };
-    let endpoint = Endpoint::from_shared(target.to_owned())
-        .map_err(error)?
-        .tcp_nodelay(true)
-        // A full field is ~116 kB: a window that holds it avoids a flow-control round trip per answer.
-        .initial_stream_window_size(4 << 20)
-        .initial_connection_window_size(8 << 20)
-        // gRPC's default 16 KiB frames cut a full field into eight DATA frames, each framed and
-        // written on its own; the largest frame HTTP/2 allows carries it in one.
-        .max_frame_size(MAX_FRAME_SIZE);
-    let channel = endpoint.connect().await.map_err(error)?;
-    Ok(DeformationClient::new(channel).max_decoding_message_size(256 << 20))
-}
-
 /// Runs one load test; `progress` is called about four times a second.
 pub async fn run(config: &BenchConfig, progress: impl Fn(Progress)) -> Result<Report, BenchError> {
     if config.concurrency == 0 || config.rate.is_some_and(|r| r.is_nan() || r <= 0.0) || config.distinct_requests == 0 {
@@ -297,7 +270,7 @@ pub async fn run(config: &BenchConfig, progress: impl Fn(Progress)) -> Result<Re
             "concurrency, rate and distinct requests must be positive".into(),
         ));
     }
-    let mut first = connect(&config.target).await?;
+    let mut first = connect(&config.connection).await?;
     let sampler = sampler_for(&mut first).await?;
     let pool = Arc::new(draw(
         &sampler,
@@ -308,7 +281,7 @@ pub async fn run(config: &BenchConfig, progress: impl Fn(Progress)) -> Result<Re
     )?);
     let mut clients = vec![first];
     for _ in 1..config.concurrency {
-        clients.push(connect(&config.target).await?);
+        clients.push(connect(&config.connection).await?);
     }
 
     let start = Instant::now() + Duration::from_millis(50);
@@ -359,7 +332,7 @@ pub async fn run(config: &BenchConfig, progress: impl Fn(Progress)) -> Result<Re
     let generator = Tally::snapshot(&tally.generator)?;
     let requests = latency.len();
     Ok(Report {
-        target: config.target.clone(),
+        target: config.connection.targets.clone(),
         model: config.model.clone(),
         mode: match config.mode {
             Mode::Unary => "unary".into(),
@@ -386,7 +359,7 @@ pub async fn run(config: &BenchConfig, progress: impl Fn(Progress)) -> Result<Re
 /// One worker's share of the test. Open loop: `due` yields (request number, due time) from the pacer;
 /// closed loop: `due` is `None` and the worker sends as soon as its last answer arrived.
 struct Job {
-    client: DeformationClient<Channel>,
+    client: Client,
     pool: Arc<Vec<PredictRequest>>,
     tally: Arc<Tally>,
     counter: Arc<AtomicU64>,
@@ -461,7 +434,7 @@ impl Job {
         while unanswered.join_next().await.is_some() {}
     }
 
-    async fn call(mut client: DeformationClient<Channel>, request: PredictRequest, due: Instant, tally: Arc<Tally>) {
+    async fn call(mut client: Client, request: PredictRequest, due: Instant, tally: Arc<Tally>) {
         tally.record_sent(due, Instant::now());
         let outcome = match client.predict(request).await {
             Ok(r) => Ok(ServerTime::of(r.into_inner().timing)),

@@ -1,10 +1,8 @@
 //! Requests for a load test, drawn from the paper's distribution p over the mesh the server reports.
 
-use tonic::transport::Channel;
-
+use crate::client::Client;
 use crate::data::{GraspSampler, SamplingError};
 use crate::mesh::{GraspRegion, Sampling};
-use crate::proto::v1::deformation_client::DeformationClient;
 use crate::proto::v1::{self as pb, GetMeshRequest};
 use crate::serve::{grasp_message, vec3_rows};
 
@@ -21,7 +19,7 @@ pub enum RequestsError {
 }
 
 /// A sampler for the mesh the server at the other end of `client` serves.
-pub async fn sampler_for(client: &mut DeformationClient<Channel>) -> Result<GraspSampler, RequestsError> {
+pub async fn sampler_for(client: &mut Client) -> Result<GraspSampler, RequestsError> {
     let mesh = client.get_mesh(GetMeshRequest::default()).await?.into_inner();
     let positions: Vec<[f64; 3]> = vec3_rows(&mesh.positions).map(|p| p.map(f64::from)).collect();
     if positions.len() != mesh.node_count as usize {

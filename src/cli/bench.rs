@@ -7,11 +7,12 @@ use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
 use nak::bench::{self, BenchConfig, Mode};
 
+use super::connect::ConnectArgs;
+
 #[derive(clap::Args)]
 pub struct BenchArgs {
-    /// Server to load.
-    #[arg(long, default_value = "http://127.0.0.1:50051")]
-    target: String,
+    #[command(flatten)]
+    connection: ConnectArgs,
     /// Model to request.
     #[arg(long, default_value = "kelvinlet")]
     model: String,
@@ -83,7 +84,7 @@ fn parse_duration(text: &str) -> Result<Duration, String> {
 
 pub fn run(args: BenchArgs) -> anyhow::Result<()> {
     let config = BenchConfig {
-        target: args.target,
+        connection: args.connection.config(),
         model: args.model,
         mode: match args.mode {
             ModeArg::Unary => Mode::Unary,

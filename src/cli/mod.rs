@@ -1,4 +1,5 @@
 pub mod bench;
+pub mod connect;
 pub mod datagen;
 pub mod engine;
 pub mod eval;

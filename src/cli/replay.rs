@@ -6,18 +6,19 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use hdrhistogram::Histogram;
-use nak::bench::{self, Percentiles};
+use nak::bench::Percentiles;
 use nak::record::replay;
 use serde::Serialize;
+
+use super::connect::ConnectArgs;
 
 #[derive(clap::Args)]
 pub struct ReplayArgs {
     /// A recording made by `nak serve --record` (a file cut short by a hard kill is read up to its
     /// last complete chunk).
     file: PathBuf,
-    /// Server to send the requests to.
-    #[arg(long, default_value = "http://127.0.0.1:50051")]
-    target: String,
+    #[command(flatten)]
+    connection: ConnectArgs,
     /// `recorded`: keep the recorded spacing between requests; `max`: send each as soon as the last
     /// was answered.
     #[arg(long, value_enum, default_value_t = Pace::Recorded)]
@@ -60,7 +61,7 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
     }
     let runtime = tokio::runtime::Runtime::new().context("cannot start the async runtime")?;
     let summary = runtime.block_on(async {
-        let mut client = bench::connect(&args.target).await?;
+        let mut client = nak::client::connect(&args.connection.config()).await?;
         let mut latency = Histogram::<u64>::new_with_bounds(1, 100_000_000, 3)?;
         let (mut mismatches, mut compared, mut largest) = (0usize, 0usize, None::<f32>);
         let start = Instant::now();

@@ -9,6 +9,7 @@ use std::sync::Arc;
 use anyhow::Context;
 use nak::engine::Engine;
 use nak::record::{Payload, Recorder};
+use nak::serve::security::read_token;
 use nak::serve::{self, ServeConfig};
 use tracing::info;
 
@@ -16,9 +17,8 @@ use super::engine::{ModelArgs, build_engine};
 
 #[derive(clap::Args)]
 pub struct ServeArgs {
-    /// TOML file with any of: mesh, models, ort_dylib, listen, max_displacement_mm,
-    /// max_interaction_points, quick_terms, max_message_bytes, max_in_flight, compute_niceness. Flags
-    /// override it.
+    /// TOML file with any of the settings below, by their long names with underscores (mesh, listen,
+    /// metrics_listen, tls_cert, auth_token_file, max_in_flight, record, …). Flags override it.
     #[arg(long)]
     config: Option<PathBuf>,
     /// A model directory (its default mesh) or an .msh file with model.toml beside it
@@ -28,6 +28,22 @@ pub struct ServeArgs {
     /// Address to listen on [default: 127.0.0.1:50051; port 0 picks a free port].
     #[arg(long)]
     listen: Option<SocketAddr>,
+    /// Serve Prometheus metrics at http://ADDR/metrics (a port of their own) [default: off].
+    #[arg(long, value_name = "ADDR")]
+    metrics_listen: Option<SocketAddr>,
+    /// TLS: the server's certificate chain (PEM); with --tls-key.
+    #[arg(long, value_name = "PEM")]
+    tls_cert: Option<PathBuf>,
+    /// TLS: the server's private key (PEM); with --tls-cert.
+    #[arg(long, value_name = "PEM")]
+    tls_key: Option<PathBuf>,
+    /// Require client certificates signed by this CA (PEM); needs --tls-cert and --tls-key.
+    #[arg(long, value_name = "PEM")]
+    tls_client_ca: Option<PathBuf>,
+    /// A file holding a bearer token: every call except health checks must send
+    /// `authorization: Bearer <token>`, or is refused UNAUTHENTICATED.
+    #[arg(long, value_name = "FILE")]
+    auth_token_file: Option<PathBuf>,
     /// Largest grasp displacement accepted, millimetres [default: 200].
     #[arg(long)]
     max_displacement_mm: Option<f64>,
@@ -74,6 +90,9 @@ pub struct ServeArgs {
 
 pub fn run(args: ServeArgs) -> anyhow::Result<()> {
     let config = serve_config(args)?;
+    // Bad certificate or token files fail now, before minutes of model loading.
+    let tls = config.tls_files().server_config()?;
+    let auth_token = config.auth_token_file.as_deref().map(read_token).transpose()?;
     serve::start_compute_pool(config.compute_niceness).context("cannot start the compute pool")?;
     let engine = Arc::new(build_engine(&config)?);
     let runtime = tokio::runtime::Builder::new_multi_thread()
@@ -88,11 +107,22 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
         // Scripts and tests read this line to find a port chosen with --listen 127.0.0.1:0.
         info!(address = %listener.local_addr()?, "listening");
         let recorder = start_recorder(&config, &engine)?;
-        let intake = serve::Intake {
+        let mut options = serve::Options::new(serve::Intake {
             max_message_bytes: config.max_message_bytes,
             max_in_flight: config.max_in_flight(),
-        };
-        serve::run(engine, listener, intake, recorder.clone(), serve::shutdown_signal()).await?;
+        });
+        options.recorder = recorder.clone();
+        options.tls = tls;
+        options.auth_token = auth_token;
+        if let Some(address) = config.metrics_listen {
+            let listener = tokio::net::TcpListener::bind(address)
+                .await
+                .with_context(|| format!("cannot listen for metrics on {address}"))?;
+            // Scripts and tests read this line to find a port chosen with port 0.
+            info!(address = %listener.local_addr()?, "metrics listening");
+            options.metrics = Some(listener);
+        }
+        serve::run(engine, listener, options, serve::shutdown_signal()).await?;
         if let Some(recorder) = recorder {
             recorder.close().context("the recording was not finished cleanly")?;
         }
@@ -110,6 +140,11 @@ fn serve_config(args: ServeArgs) -> anyhow::Result<ServeConfig> {
     };
     config.mesh = args.mesh.or(config.mesh);
     config.listen = args.listen.unwrap_or(config.listen);
+    config.metrics_listen = args.metrics_listen.or(config.metrics_listen);
+    config.tls_cert = args.tls_cert.or(config.tls_cert);
+    config.tls_key = args.tls_key.or(config.tls_key);
+    config.tls_client_ca = args.tls_client_ca.or(config.tls_client_ca);
+    config.auth_token_file = args.auth_token_file.or(config.auth_token_file);
     config.max_displacement_mm = args.max_displacement_mm.unwrap_or(config.max_displacement_mm);
     config.max_interaction_points = args.max_interaction_points.unwrap_or(config.max_interaction_points);
     config.quick_terms = args.quick_terms.unwrap_or(config.quick_terms);

@@ -121,6 +121,8 @@ pub struct Stats {
     pub dropped: AtomicU64,
     pub files: AtomicU64,
     pub bytes: AtomicU64,
+    /// Exchanges waiting in the queue for the writer.
+    pub queued: AtomicU64,
     /// Why the writer stopped, once it has.
     pub stopped: OnceLock<String>,
 }
@@ -167,9 +169,12 @@ impl Recorder {
     pub fn record(&self, exchange: Exchange) {
         let Ok(queue) = self.queue.lock() else { return };
         let Some(tx) = queue.as_ref() else { return };
+        // Counted before sending: the writer may take it (and count it off) before try_send returns.
+        self.stats.queued.fetch_add(1, Ordering::Relaxed);
         match tx.try_send(exchange) {
             Ok(()) => {}
             Err(TrySendError::Full(_)) | Err(TrySendError::Disconnected(_)) => {
+                self.stats.queued.fetch_sub(1, Ordering::Relaxed);
                 self.stats.dropped.fetch_add(1, Ordering::Relaxed);
             }
         }
@@ -189,6 +194,16 @@ impl Recorder {
 
     pub fn dropped(&self) -> u64 {
         self.stats.dropped.load(Ordering::Relaxed)
+    }
+
+    /// Exchanges waiting for the writer now.
+    pub fn queued(&self) -> u64 {
+        self.stats.queued.load(Ordering::Relaxed)
+    }
+
+    /// The most exchanges the queue holds.
+    pub fn capacity(&self) -> usize {
+        self.config.queue
     }
 
     /// Stops accepting exchanges, writes what is queued, and finishes the file (summary, indexes). A

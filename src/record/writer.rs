@@ -157,6 +157,7 @@ impl Writer {
             let _ = self.stats.stopped.set(e.to_string());
             // What was queued is lost too; later exchanges find the queue closed and count themselves.
             let queued = rx.try_iter().count() as u64;
+            self.stats.queued.fetch_sub(queued, Ordering::Relaxed);
             self.stats.dropped.fetch_add(queued, Ordering::Relaxed);
         }
     }
@@ -165,9 +166,12 @@ impl Writer {
         let mut finished_bytes = 0u64;
         loop {
             match rx.recv_timeout(FLUSH_EVERY) {
-                Ok(exchange) => self.write(&exchange).inspect_err(|_| {
-                    self.stats.dropped.fetch_add(1, Ordering::Relaxed);
-                })?,
+                Ok(exchange) => {
+                    self.stats.queued.fetch_sub(1, Ordering::Relaxed);
+                    self.write(&exchange).inspect_err(|_| {
+                        self.stats.dropped.fetch_add(1, Ordering::Relaxed);
+                    })?
+                }
                 Err(RecvTimeoutError::Timeout) => {}
                 Err(RecvTimeoutError::Disconnected) => break,
             }

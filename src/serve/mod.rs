@@ -2,7 +2,9 @@
 
 pub mod admission;
 pub mod convert;
+pub mod metrics;
 mod priority;
+pub mod security;
 mod service;
 mod status_codes;
 
@@ -12,7 +14,9 @@ use std::sync::Arc;
 
 use serde::Deserialize;
 use tokio::net::TcpListener;
-use tracing::info;
+use tonic::service::interceptor::InterceptedService;
+use tonic::transport::ServerTlsConfig;
+use tracing::{info, warn};
 
 pub use convert::{f32_bytes, grasp_message, response_rows, vec3_rows};
 pub use priority::{DEFAULT_COMPUTE_NICENESS, favour_runtime_thread, start_compute_pool};
@@ -24,6 +28,8 @@ use crate::proto::v1::FILE_DESCRIPTOR_SET;
 use crate::proto::v1::deformation_server::DeformationServer;
 use crate::record::{Payload, RecordConfig, Recorder};
 use admission::Admission;
+use metrics::Metrics;
+use security::{RequireToken, SecurityError, TlsFiles};
 
 /// Server settings, from flags or a TOML file (`nak serve --config serve.toml`).
 #[derive(Debug, Clone, PartialEq, Deserialize, serde::Serialize)]
@@ -43,6 +49,15 @@ pub struct ServeConfig {
     /// Where the Kelvinlet field is evaluated: cpu, gpu or auto.
     pub prior_backend: PriorBackend,
     pub listen: SocketAddr,
+    /// Serve Prometheus metrics at `http://ADDR/metrics`.
+    pub metrics_listen: Option<SocketAddr>,
+    /// TLS: the server's certificate chain and private key (PEM).
+    pub tls_cert: Option<PathBuf>,
+    pub tls_key: Option<PathBuf>,
+    /// Require client certificates signed by this CA (PEM).
+    pub tls_client_ca: Option<PathBuf>,
+    /// A file holding the bearer token every call but health checks must present.
+    pub auth_token_file: Option<PathBuf>,
     /// Largest grasp displacement accepted, in millimetres.
     pub max_displacement_mm: f64,
     pub max_interaction_points: usize,
@@ -77,6 +92,11 @@ impl Default for ServeConfig {
             cache_dir: None,
             prior_backend: PriorBackend::Cpu,
             listen: SocketAddr::from(([127, 0, 0, 1], 50051)),
+            metrics_listen: None,
+            tls_cert: None,
+            tls_key: None,
+            tls_client_ca: None,
+            auth_token_file: None,
             max_displacement_mm: limits.max_displacement_m * 1e3,
             max_interaction_points: limits.max_interaction_points,
             quick_terms: limits.quick_terms,
@@ -121,6 +141,14 @@ impl ServeConfig {
         }
     }
 
+    pub fn tls_files(&self) -> TlsFiles {
+        TlsFiles {
+            cert: self.tls_cert.clone(),
+            key: self.tls_key.clone(),
+            client_ca: self.tls_client_ca.clone(),
+        }
+    }
+
     pub fn limits(&self) -> Limits {
         Limits {
             max_displacement_m: self.max_displacement_mm * 1e-3,
@@ -136,6 +164,10 @@ pub enum ServeError {
     Transport(#[from] tonic::transport::Error),
     #[error("server reflection: {0}")]
     Reflection(#[from] tonic_reflection::server::Error),
+    #[error(transparent)]
+    Security(#[from] SecurityError),
+    #[error("metrics endpoint: {0}")]
+    Metrics(#[source] std::io::Error),
 }
 
 /// How much one server takes in: the largest message, and the most requests admitted at once.
@@ -155,14 +187,46 @@ impl Intake {
     }
 }
 
+/// What a server is given besides its engine and its gRPC listener.
+pub struct Options {
+    pub intake: Intake,
+    pub recorder: Option<Arc<Recorder>>,
+    /// Where `/metrics` is served, if anywhere.
+    pub metrics: Option<TcpListener>,
+    /// TLS on the gRPC port; `None`: plain HTTP/2.
+    pub tls: Option<ServerTlsConfig>,
+    /// The bearer token callers must present (health checks excepted).
+    pub auth_token: Option<String>,
+}
+
+impl Options {
+    /// Plain HTTP/2, no recording, no metrics, no token.
+    pub fn new(intake: Intake) -> Self {
+        Self {
+            intake,
+            recorder: None,
+            metrics: None,
+            tls: None,
+            auth_token: None,
+        }
+    }
+}
+
 /// Serves `engine` on `listener` until `shutdown` completes, then drains in-flight calls.
 pub async fn run(
     engine: Arc<Engine>,
     listener: TcpListener,
-    intake: Intake,
-    recorder: Option<Arc<Recorder>>,
+    options: Options,
     shutdown: impl std::future::Future<Output = ()> + Send,
 ) -> Result<(), ServeError> {
+    let Options {
+        intake,
+        recorder,
+        metrics: metrics_listener,
+        tls,
+        auth_token,
+    } = options;
+    warn_if_exposed(&listener, tls.is_some(), auth_token.is_some());
     let (health_reporter, health_service) = tonic_health::server::health_reporter();
     health_reporter
         .set_serving::<DeformationServer<DeformationService>>()
@@ -175,11 +239,32 @@ pub async fn run(
         tokio::spawn(report_drops(Arc::downgrade(recorder)));
     }
     let admission = Admission::new(intake.max_in_flight);
-    let deformation = DeformationServer::new(DeformationService::new(engine.clone(), recorder, admission))
-        .max_decoding_message_size(intake.max_message_bytes);
+    let metrics = Arc::new(Metrics::new(engine.clone(), admission.clone(), recorder.clone()));
+    let service = DeformationService::new(engine.clone(), recorder, admission, metrics.clone());
+    let deformation = DeformationServer::new(service).max_decoding_message_size(intake.max_message_bytes);
+    // Health checks stay open: probes (kubelet, load balancers) carry no token.
+    let check_token = RequireToken::new(auth_token.as_deref());
+    let deformation = InterceptedService::new(deformation, check_token.clone());
+    let reflection = InterceptedService::new(reflection, check_token);
+    // Stopping the gRPC server stops the metrics endpoint too.
+    let (stopped, stop_metrics) = tokio::sync::watch::channel(());
+    if let Some(listener) = metrics_listener {
+        info!(address = ?listener.local_addr().ok(), "metrics at /metrics");
+        let mut stop = stop_metrics;
+        let served = metrics::serve(metrics, listener, async move {
+            let _ = stop.changed().await;
+        });
+        tokio::spawn(async move {
+            if let Err(e) = served.await {
+                tracing::error!(error = %e, "the metrics endpoint stopped");
+            }
+        });
+    }
     info!(
         max_in_flight = intake.max_in_flight,
         address = ?listener.local_addr().ok(),
+        tls = tls.is_some(),
+        token = auth_token.is_some(),
         mesh = %engine.mesh().config.name,
         nodes = engine.mesh().node_count(),
         models = ?engine.models().map(|m| m.name.clone()).collect::<Vec<_>>(),
@@ -188,15 +273,34 @@ pub async fn run(
     // Nagle's algorithm would hold back the tail of a response until the client's delayed ACK, 40 ms
     // on Linux; the builder's own nodelay setting does not reach sockets accepted here.
     let incoming = tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true));
-    tonic::transport::Server::builder()
+    let mut builder = tonic::transport::Server::builder();
+    if let Some(tls) = tls {
+        builder = builder.tls_config(tls)?;
+    }
+    builder
         .layer(status_codes::layer())
         .add_service(health_service)
         .add_service(reflection)
         .add_service(deformation)
         .serve_with_incoming_shutdown(incoming, shutdown)
         .await?;
+    drop(stopped);
     info!("stopped");
     Ok(())
+}
+
+/// Warns when callers beyond this host could reach a server without TLS: requests, answers and any
+/// token would cross the network in clear.
+fn warn_if_exposed(listener: &TcpListener, tls: bool, token: bool) {
+    let Ok(address) = listener.local_addr() else { return };
+    if !tls && !address.ip().is_loopback() {
+        warn!(
+            %address,
+            token,
+            "listening beyond loopback without TLS: traffic (and the bearer token, if any) is unencrypted; \
+             give --tls-cert and --tls-key"
+        );
+    }
 }
 
 /// Logs, every ten seconds, exchanges the recorder had to drop since the last report.

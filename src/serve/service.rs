@@ -11,6 +11,7 @@ use tracing::{debug, warn};
 
 use super::admission::{self, Admission, Permit};
 use super::convert;
+use super::metrics::Metrics;
 use super::status_codes::TOO_LARGE;
 use crate::engine::{self, Engine, EngineError, Prediction, Prepared};
 use crate::proto::v1 as pb;
@@ -22,23 +23,30 @@ pub struct DeformationService {
     engine: Arc<Engine>,
     recorder: Option<Arc<Recorder>>,
     admission: Arc<Admission>,
+    metrics: Arc<Metrics>,
     started: Instant,
     /// GetMesh's answer, built once: the mesh never changes while serving.
     mesh: Arc<pb::Mesh>,
 }
 
 impl DeformationService {
-    pub fn new(engine: Arc<Engine>, recorder: Option<Arc<Recorder>>, admission: Arc<Admission>) -> Self {
+    pub fn new(
+        engine: Arc<Engine>,
+        recorder: Option<Arc<Recorder>>,
+        admission: Arc<Admission>,
+        metrics: Arc<Metrics>,
+    ) -> Self {
         Self {
             mesh: Arc::new(convert::mesh(engine.mesh())),
             engine,
             recorder,
             admission,
+            metrics,
             started: Instant::now(),
         }
     }
 
-    /// Answers one request and hands the exchange to the recorder, if recording.
+    /// Answers one request, counts it, and hands the exchange to the recorder, if recording.
     async fn predict_one(
         &self,
         message: pb::PredictRequest,
@@ -46,6 +54,10 @@ impl DeformationService {
     ) -> Result<pb::PredictResponse, Status> {
         let received = SystemTime::now();
         let answer = self.answer(&message, deadline).await;
+        match &answer {
+            Ok(response) => self.metrics.observe(&message.model, Code::Ok, response.timing.as_ref()),
+            Err(status) => self.metrics.observe(&message.model, status.code(), None),
+        }
         if let Some(recorder) = &self.recorder {
             recorder.record(Exchange {
                 received,

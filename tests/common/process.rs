@@ -22,9 +22,14 @@ pub fn nak() -> Command {
 impl ServeProcess {
     /// Runs `command` (a `nak serve` or a wrapper that ends by executing one) with `--listen
     /// 127.0.0.1:0 --log-format json` appended, and waits until it listens.
-    pub fn start(mut command: Command) -> Self {
+    pub fn start(command: Command) -> Self {
+        Self::start_on(command, "127.0.0.1:0")
+    }
+
+    /// As [`Self::start`], listening on `address`.
+    pub fn start_on(mut command: Command, address: &str) -> Self {
         let mut child = command
-            .args(["--listen", "127.0.0.1:0", "--log-format", "json"])
+            .args(["--listen", address, "--log-format", "json"])
             .stderr(Stdio::piped())
             .spawn()
             .expect("start nak serve");

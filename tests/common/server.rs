@@ -7,7 +7,7 @@ use std::sync::Arc;
 use nak::engine::{Engine, Limits};
 use nak::mesh::{self, MeshSource};
 use nak::proto::v1::deformation_client::DeformationClient;
-use nak::serve::Intake;
+use nak::serve::{Intake, Options};
 use tokio::sync::oneshot;
 use tonic::transport::Channel;
 
@@ -33,6 +33,11 @@ impl TestServer {
 
     /// Serves a prepared engine with the given message and admission limits.
     pub async fn with_intake(engine: Engine, intake: Intake) -> Self {
+        Self::with_options(engine, Options::new(intake)).await
+    }
+
+    /// Serves a prepared engine with every server option (TLS, token, metrics, recording).
+    pub async fn with_options(engine: Engine, options: Options) -> Self {
         let engine = Arc::new(engine);
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("bind");
         let address = listener.local_addr().expect("address");
@@ -42,7 +47,7 @@ impl TestServer {
             let shutdown = async {
                 let _ = stopped.await;
             };
-            nak::serve::run(served, listener, intake, None, shutdown)
+            nak::serve::run(served, listener, options, shutdown)
                 .await
                 .expect("server");
         });
