@@ -30,7 +30,8 @@ enum LogFormat {
 enum Command {
     /// Serve deformation predictions over gRPC (defaults: embedded phantom liver, 127.0.0.1:50051).
     Serve(cli::serve::ServeArgs),
-    /// Evaluate one set of grasps offline through the serving engine and write the field as .npy.
+    /// Evaluate one set of grasps offline through the serving engine; write the field as .npy or the
+    /// deformed mesh as .vtu/.vtk.
     Predict(cli::predict::PredictArgs),
     /// Load-test a nak server: open or closed loop, unary or streaming, HDR latency percentiles.
     Bench(cli::bench::BenchArgs),
@@ -59,9 +60,16 @@ enum Command {
 enum MeshCommand {
     /// Load and validate a mesh, and print a summary: counts, bounds, regions, node sets, quality.
     Info {
-        /// A model directory (its default mesh) or an .msh file with model.toml beside it
-        /// [default: the embedded phantom liver].
+        /// A model directory (its default mesh) or a mesh file (.msh, .vtu, .vtk) with model.toml
+        /// beside it [default: the embedded phantom liver].
         path: Option<PathBuf>,
+    },
+    /// Write a mesh as a VTK unstructured grid (.vtu or legacy .vtk, by extension) with its regions
+    /// and node sets, after the same validation as serving it.
+    Convert {
+        /// A model directory, a mesh file with model.toml beside it, or "embedded".
+        input: PathBuf,
+        output: PathBuf,
     },
 }
 
@@ -87,6 +95,21 @@ fn main() -> anyhow::Result<()> {
         } => {
             let mesh = cli::engine::load_mesh(path.as_deref())?;
             print_or_pipe_closed(|out| cli::mesh_info::print(out, &mesh))
+        }
+        Command::Mesh {
+            command: MeshCommand::Convert { input, output },
+        } => {
+            let input = (input.as_os_str() != "embedded").then_some(input);
+            let mesh = cli::engine::load_mesh(input.as_deref())?;
+            nak::mesh::vtk::write(&mesh, None, &output)?;
+            println!(
+                "{} → {} ({} nodes, {} tetrahedra)",
+                mesh.origin,
+                output.display(),
+                mesh.node_count(),
+                mesh.tets.len()
+            );
+            Ok(())
         }
     }
 }

@@ -1,4 +1,5 @@
-//! `nak predict`: one offline evaluation through the serving engine, written as .npy.
+//! `nak predict`: one offline evaluation through the serving engine, written as .npy, or as the
+//! deformed mesh for ParaView (.vtu, legacy .vtk).
 
 use std::path::{Path, PathBuf};
 
@@ -10,7 +11,8 @@ use super::engine::ModelArgs;
 
 #[derive(clap::Args)]
 pub struct PredictArgs {
-    /// A model directory or an .msh file [default: the embedded phantom liver].
+    /// A model directory or a mesh file (.msh, .vtu, legacy .vtk) with model.toml beside it
+    /// [default: the embedded phantom liver].
     #[arg(long)]
     mesh: Option<PathBuf>,
     /// Model to evaluate.
@@ -20,7 +22,8 @@ pub struct PredictArgs {
     /// "radius": r, "displacement": [...]}]}, metres.
     #[arg(long)]
     grasps: PathBuf,
-    /// Output .npy, float32 (N, 3).
+    /// Output: .npy (float32, N × 3), or .vtu / .vtk: the deformed mesh with the displacement,
+    /// regions and node sets as point and cell data (ParaView).
     #[arg(long)]
     out: PathBuf,
     /// Write the surface nodes only (Mesh.surface_nodes order) instead of every node.
@@ -33,8 +36,16 @@ pub struct PredictArgs {
 pub fn run(args: PredictArgs) -> anyhow::Result<()> {
     let engine = args.models.engine(args.mesh, &args.model)?;
     let grasps = read_grasps(&args.grasps)?;
+    let as_mesh = nak::mesh::vtk::is_vtk(&args.out);
+    if as_mesh && args.surface_only {
+        bail!("--surface-only writes rows, not a mesh: write .npy, or drop --surface-only for .vtu/.vtk");
+    }
     let prediction = evaluate(&engine, &args.model, grasps, args.surface_only)?;
-    write_npy(&args.out, &prediction.displacements)?;
+    if as_mesh {
+        nak::mesh::vtk::write(engine.mesh(), Some(&prediction.displacements), &args.out)?;
+    } else {
+        write_npy(&args.out, &prediction.displacements)?;
+    }
     print!("{}", summary(&prediction, &args.out));
     Ok(())
 }

@@ -70,6 +70,8 @@ pub struct MeshConfig {
     pub prior: PriorParams,
     pub body: Body,
     pub materials: BTreeMap<String, Material>,
+    /// VTK region label → region name (`label` in `[regions.NAME]`).
+    pub region_labels: BTreeMap<i32, String>,
     pub sampling: Sampling,
 }
 
@@ -123,6 +125,8 @@ struct RawMaterial {
     poisson_ratio: f64,
     c10_kpa: f64,
     c01_kpa: f64,
+    /// The integer marking this region in a VTK mesh's `region` (or `labels`) cell array.
+    label: Option<i32>,
 }
 
 #[derive(Deserialize)]
@@ -161,7 +165,15 @@ impl RawConfig {
             return Err(invalid("prior.epsilon_m must be > 0 and prior.lambda >= 0".into()));
         }
         let mut materials = BTreeMap::new();
+        let mut region_labels = BTreeMap::new();
         for (name, m) in self.regions {
+            if let Some(label) = m.label
+                && let Some(other) = region_labels.insert(label, name.clone())
+            {
+                return Err(invalid(format!(
+                    "regions.{other} and regions.{name} both have label = {label}"
+                )));
+            }
             let positive = [m.shear_modulus_kpa, m.c10_kpa, m.c01_kpa].iter().all(|v| *v > 0.0);
             if !(positive && m.poisson_ratio > -1.0 && m.poisson_ratio < 0.5) {
                 return Err(invalid(format!(
@@ -196,6 +208,7 @@ impl RawConfig {
             name: self.mesh.name,
             default_mesh: self.mesh.default,
             prior: p,
+            region_labels,
             body: Body {
                 density: self.body.density_kg_m3,
                 gravity: self.body.gravity_m_s2,

@@ -13,6 +13,7 @@ pub mod msh;
 pub mod quality;
 mod source;
 pub mod topology;
+pub mod vtk;
 
 use std::collections::{BTreeMap, HashMap};
 
@@ -157,7 +158,18 @@ impl TetMesh {
 
     /// Builds and validates a mesh from MSH bytes and its configuration.
     pub fn from_msh(bytes: &[u8], origin: &str, config: MeshConfig) -> Result<Self, MeshError> {
-        let file = msh::parse(bytes, origin)?;
+        Self::from_labelled(msh::parse(bytes, origin)?, origin, config)
+    }
+
+    /// Builds and validates a mesh from a VTK unstructured grid (`.vtu`, legacy `.vtk`) and its
+    /// configuration (which names the regions by label).
+    pub fn from_vtk(path: &std::path::Path, config: MeshConfig) -> Result<Self, MeshError> {
+        let file = vtk::read(path, &config)?;
+        Self::from_labelled(file, &path.display().to_string(), config)
+    }
+
+    /// Builds and validates a mesh from its labelled form, however it was read.
+    fn from_labelled(file: msh::MshFile, origin: &str, config: MeshConfig) -> Result<Self, MeshError> {
         let index: HashMap<u64, u32> = file.node_tags.iter().enumerate().map(|(i, &t)| (t, i as u32)).collect();
         let resolve = |tag: u64, element: u64| {
             index.get(&tag).copied().ok_or_else(|| MeshError::Parse {

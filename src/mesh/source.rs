@@ -1,9 +1,9 @@
-//! Where a mesh comes from: the embedded phantom, a model directory, or an `.msh` file with its
-//! `model.toml` beside it.
+//! Where a mesh comes from: the embedded phantom, a model directory, or a mesh file (`.msh`, `.vtu`,
+//! legacy `.vtk`) with its `model.toml` beside it.
 
 use std::path::{Path, PathBuf};
 
-use super::{MeshConfig, MeshError, TetMesh};
+use super::{MeshConfig, MeshError, TetMesh, vtk};
 
 /// Name under which the embedded phantom liver is known.
 pub const EMBEDDED_NAME: &str = "phantom-liver";
@@ -67,6 +67,26 @@ fn read_config(dir: &Path) -> Result<MeshConfig, MeshError> {
     MeshConfig::parse(&text, &path.display().to_string())
 }
 
+/// A mesh file, MSH or VTK by its extension, with its configuration. The file is opened first: a
+/// missing mesh is the error to report, not the configuration beside it.
+fn load_file(path: &Path, config: impl FnOnce() -> Result<MeshConfig, MeshError>) -> Result<TetMesh, MeshError> {
+    if vtk::is_vtk(path) {
+        let file = std::fs::File::open(path).map_err(|source| MeshError::Io {
+            path: path.display().to_string(),
+            source,
+        })?;
+        if file.metadata().is_ok_and(|m| m.is_dir()) {
+            return Err(MeshError::Io {
+                path: path.display().to_string(),
+                source: std::io::Error::from(std::io::ErrorKind::IsADirectory),
+            });
+        }
+        return TetMesh::from_vtk(path, config()?);
+    }
+    let bytes = read(path)?;
+    TetMesh::from_msh(&bytes, &path.display().to_string(), config()?)
+}
+
 /// Loads and validates the mesh a source names.
 pub fn load(source: &MeshSource) -> Result<TetMesh, MeshError> {
     match source {
@@ -77,17 +97,14 @@ pub fn load(source: &MeshSource) -> Result<TetMesh, MeshError> {
         }
         MeshSource::Directory(dir) => {
             let config = read_config(dir)?;
-            let path = dir.join(&config.default_mesh);
-            TetMesh::from_msh(&read(&path)?, &path.display().to_string(), config)
+            load_file(&dir.join(&config.default_mesh), || Ok(config))
         }
         MeshSource::File(path) => {
-            let bytes = read(path)?;
             let dir = path
                 .parent()
                 .filter(|d| !d.as_os_str().is_empty())
                 .unwrap_or(Path::new("."));
-            let config = read_config(dir)?;
-            TetMesh::from_msh(&bytes, &path.display().to_string(), config)
+            load_file(path, || read_config(dir))
         }
     }
 }
