@@ -29,7 +29,7 @@ enum LogFormat {
 #[derive(Subcommand)]
 enum Command {
     /// Serve deformation predictions over gRPC (defaults: embedded phantom liver, 127.0.0.1:50051).
-    Serve(cli::serve::ServeArgs),
+    Serve(Box<cli::serve::ServeArgs>),
     /// Evaluate one set of grasps offline through the serving engine; write the field as .npy or the
     /// deformed mesh as .vtu/.vtk.
     Predict(cli::predict::PredictArgs),
@@ -77,7 +77,7 @@ fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
     init_logging(cli.log_format);
     match cli.command {
-        Command::Serve(args) => cli::serve::run(args),
+        Command::Serve(args) => cli::serve::run(*args),
         Command::Predict(args) => cli::predict::run(args),
         Command::Bench(args) => cli::bench::run(args),
         Command::Replay(args) => cli::replay::run(args),

@@ -203,7 +203,12 @@ impl Pki {
 }
 
 async fn tls_server(pki: &Pki, client_ca: bool) -> TestServer {
+    tls_server_with_health(pki, client_ca, None).await
+}
+
+async fn tls_server_with_health(pki: &Pki, client_ca: bool, health: Option<tokio::net::TcpListener>) -> TestServer {
     let mut options = Options::new(intake());
+    options.health = health;
     options.tls = Some(pki.server_tls(client_ca));
     options.auth_token = Some(nak::serve::security::read_token(&pki.path("token")).expect("token"));
     TestServer::with_options(Engine::new(coarse(), Limits::default()), options).await
@@ -222,7 +227,8 @@ async fn predict(config: &ClientConfig) -> Result<pb::PredictResponse, tonic::St
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn tls_and_the_bearer_token_guard_every_call_but_health() {
     let pki = Pki::new();
-    let server = tls_server(&pki, false).await;
+    let (health_listener, health_address) = metrics_listener().await;
+    let server = tls_server_with_health(&pki, false, Some(health_listener)).await;
     let by_name = format!("https://localhost:{}", server.address.port());
     let by_address = format!("https://{}", server.address);
 
@@ -268,6 +274,26 @@ async fn tls_and_the_bearer_token_guard_every_call_but_health() {
         status,
         tonic_health::pb::health_check_response::ServingStatus::Serving as i32
     );
+    // The plain health port answers probes that speak no TLS, and serves nothing else.
+    let plain = tonic::transport::Endpoint::from_shared(format!("http://{health_address}"))
+        .unwrap()
+        .connect()
+        .await
+        .expect("plain health port");
+    let serving = tonic_health::pb::health_client::HealthClient::new(plain.clone())
+        .check(tonic_health::pb::HealthCheckRequest {
+            service: "nak.v1.Deformation".into(),
+        })
+        .await
+        .expect("health over plain HTTP/2")
+        .into_inner()
+        .status;
+    assert_eq!(serving, status);
+    let unserved = pb::deformation_client::DeformationClient::new(plain)
+        .get_mesh(pb::GetMeshRequest::default())
+        .await
+        .unwrap_err();
+    assert_eq!(unserved.code(), Code::Unimplemented);
     let mut deformation = pb::deformation_client::DeformationClient::new(channel);
     let refused = deformation.list_models(pb::ListModelsRequest {}).await.unwrap_err();
     assert_eq!(refused.code(), Code::Unauthenticated);

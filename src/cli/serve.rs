@@ -31,6 +31,10 @@ pub struct ServeArgs {
     /// Serve Prometheus metrics at http://ADDR/metrics (a port of their own) [default: off].
     #[arg(long, value_name = "ADDR")]
     metrics_listen: Option<SocketAddr>,
+    /// Also serve grpc.health.v1 alone on ADDR, in plain HTTP/2: for probes that speak no TLS, such as
+    /// the kubelet's [default: off; health is always on the main port too].
+    #[arg(long, value_name = "ADDR")]
+    health_listen: Option<SocketAddr>,
     /// TLS: the server's certificate chain (PEM); with --tls-key.
     #[arg(long, value_name = "PEM")]
     tls_cert: Option<PathBuf>,
@@ -122,6 +126,12 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
             info!(address = %listener.local_addr()?, "metrics listening");
             options.metrics = Some(listener);
         }
+        if let Some(address) = config.health_listen {
+            let listener = tokio::net::TcpListener::bind(address)
+                .await
+                .with_context(|| format!("cannot listen for health checks on {address}"))?;
+            options.health = Some(listener);
+        }
         serve::run(engine, listener, options, serve::shutdown_signal()).await?;
         if let Some(recorder) = recorder {
             recorder.close().context("the recording was not finished cleanly")?;
@@ -141,6 +151,7 @@ fn serve_config(args: ServeArgs) -> anyhow::Result<ServeConfig> {
     config.mesh = args.mesh.or(config.mesh);
     config.listen = args.listen.unwrap_or(config.listen);
     config.metrics_listen = args.metrics_listen.or(config.metrics_listen);
+    config.health_listen = args.health_listen.or(config.health_listen);
     config.tls_cert = args.tls_cert.or(config.tls_cert);
     config.tls_key = args.tls_key.or(config.tls_key);
     config.tls_client_ca = args.tls_client_ca.or(config.tls_client_ca);

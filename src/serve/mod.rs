@@ -51,6 +51,8 @@ pub struct ServeConfig {
     pub listen: SocketAddr,
     /// Serve Prometheus metrics at `http://ADDR/metrics`.
     pub metrics_listen: Option<SocketAddr>,
+    /// Serve grpc.health.v1 alone, without TLS, on this address (for the kubelet's gRPC probes).
+    pub health_listen: Option<SocketAddr>,
     /// TLS: the server's certificate chain and private key (PEM).
     pub tls_cert: Option<PathBuf>,
     pub tls_key: Option<PathBuf>,
@@ -93,6 +95,7 @@ impl Default for ServeConfig {
             prior_backend: PriorBackend::Cpu,
             listen: SocketAddr::from(([127, 0, 0, 1], 50051)),
             metrics_listen: None,
+            health_listen: None,
             tls_cert: None,
             tls_key: None,
             tls_client_ca: None,
@@ -193,6 +196,8 @@ pub struct Options {
     pub recorder: Option<Arc<Recorder>>,
     /// Where `/metrics` is served, if anywhere.
     pub metrics: Option<TcpListener>,
+    /// A plain-HTTP/2 port with grpc.health.v1 alone, for probes that speak no TLS (the kubelet's).
+    pub health: Option<TcpListener>,
     /// TLS on the gRPC port; `None`: plain HTTP/2.
     pub tls: Option<ServerTlsConfig>,
     /// The bearer token callers must present (health checks excepted).
@@ -206,6 +211,7 @@ impl Options {
             intake,
             recorder: None,
             metrics: None,
+            health: None,
             tls: None,
             auth_token: None,
         }
@@ -223,6 +229,7 @@ pub async fn run(
         intake,
         recorder,
         metrics: metrics_listener,
+        health: health_listener,
         tls,
         auth_token,
     } = options;
@@ -246,17 +253,32 @@ pub async fn run(
     let check_token = RequireToken::new(auth_token.as_deref());
     let deformation = InterceptedService::new(deformation, check_token.clone());
     let reflection = InterceptedService::new(reflection, check_token);
-    // Stopping the gRPC server stops the metrics endpoint too.
-    let (stopped, stop_metrics) = tokio::sync::watch::channel(());
+    // Stopping the gRPC server stops the metrics and health ports too.
+    let (stopped, _) = tokio::sync::watch::channel(());
     if let Some(listener) = metrics_listener {
         info!(address = ?listener.local_addr().ok(), "metrics at /metrics");
-        let mut stop = stop_metrics;
+        let mut stop = stopped.subscribe();
         let served = metrics::serve(metrics, listener, async move {
             let _ = stop.changed().await;
         });
         tokio::spawn(async move {
             if let Err(e) = served.await {
                 tracing::error!(error = %e, "the metrics endpoint stopped");
+            }
+        });
+    }
+    if let Some(listener) = health_listener {
+        info!(address = ?listener.local_addr().ok(), "health checks (plain HTTP/2)");
+        let mut stop = stopped.subscribe();
+        let incoming = tonic::transport::server::TcpIncoming::from(listener);
+        let served = tonic::transport::Server::builder()
+            .add_service(health_service.clone())
+            .serve_with_incoming_shutdown(incoming, async move {
+                let _ = stop.changed().await;
+            });
+        tokio::spawn(async move {
+            if let Err(e) = served.await {
+                tracing::error!(error = %e, "the health port stopped");
             }
         });
     }
