@@ -36,7 +36,7 @@ pub struct PredictArgs {
 pub fn run(args: PredictArgs) -> anyhow::Result<()> {
     let engine = args.models.engine(args.mesh, &args.model)?;
     let grasps = read_grasps(&args.grasps)?;
-    let as_mesh = nak::mesh::vtk::is_vtk(&args.out);
+    let as_mesh = nak::mesh::vtk::format(&args.out).is_some();
     if as_mesh && args.surface_only {
         bail!("--surface-only writes rows, not a mesh: write .npy, or drop --surface-only for .vtu/.vtk");
     }

@@ -118,26 +118,25 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
         options.recorder = recorder.clone();
         options.tls = tls;
         options.auth_token = auth_token;
-        if let Some(address) = config.metrics_listen {
-            let listener = tokio::net::TcpListener::bind(address)
-                .await
-                .with_context(|| format!("cannot listen for metrics on {address}"))?;
-            // Scripts and tests read this line to find a port chosen with port 0.
-            info!(address = %listener.local_addr()?, "metrics listening");
-            options.metrics = Some(listener);
-        }
-        if let Some(address) = config.health_listen {
-            let listener = tokio::net::TcpListener::bind(address)
-                .await
-                .with_context(|| format!("cannot listen for health checks on {address}"))?;
-            options.health = Some(listener);
-        }
+        options.metrics = bind(config.metrics_listen, "metrics").await?;
+        options.health = bind(config.health_listen, "health checks").await?;
         serve::run(engine, listener, options, serve::shutdown_signal()).await?;
         if let Some(recorder) = recorder {
             recorder.close().context("the recording was not finished cleanly")?;
         }
         anyhow::Ok(())
     })
+}
+
+/// A listener for a side port, when its address is given; logs `<what> listening` with the address
+/// (scripts and tests read it to find a port chosen with port 0).
+async fn bind(address: Option<SocketAddr>, what: &str) -> anyhow::Result<Option<tokio::net::TcpListener>> {
+    let Some(address) = address else { return Ok(None) };
+    let listener = tokio::net::TcpListener::bind(address)
+        .await
+        .with_context(|| format!("cannot listen for {what} on {address}"))?;
+    info!(address = %listener.local_addr()?, "{what} listening");
+    Ok(Some(listener))
 }
 
 fn serve_config(args: ServeArgs) -> anyhow::Result<ServeConfig> {

@@ -11,7 +11,7 @@
 mod credentials;
 mod targets;
 
-use std::collections::HashSet;
+use std::collections::{HashMap, HashSet};
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
@@ -128,10 +128,11 @@ fn tls_config(config: &ClientConfig, targets: &[Target]) -> Result<Option<Client
     if !wanted {
         return Ok(None);
     }
-    let mut tls = ClientTlsConfig::new().with_native_roots();
-    if let Some(ca) = &config.tls_ca {
-        tls = tls.ca_certificate(Certificate::from_pem(read_pem("CA bundle", ca)?));
-    }
+    // A given CA is the only trust anchor (a private CA, as in a cluster); otherwise the system's roots.
+    let mut tls = match &config.tls_ca {
+        Some(ca) => ClientTlsConfig::new().ca_certificate(Certificate::from_pem(read_pem("CA bundle", ca)?)),
+        None => ClientTlsConfig::new().with_native_roots(),
+    };
     match (&config.tls_cert, &config.tls_key) {
         (Some(cert), Some(key)) => {
             tls = tls.identity(Identity::from_pem(
@@ -201,13 +202,14 @@ type Key = (usize, SocketAddr);
 /// `::1` too, where a server bound to 127.0.0.1 is not listening); if none answers, connecting fails
 /// with the first error, as a direct connection would.
 async fn balanced(targets: Vec<Target>, settings: Settings, re_resolve: Duration) -> Result<Channel, ClientError> {
-    let mut reachable = HashSet::new();
+    let mut reachable = HashMap::new();
     let mut first_error = None;
     for (index, target) in targets.iter().enumerate() {
         for address in resolve(target).await? {
-            match settings.endpoint(target, address)?.connect().await {
+            let endpoint = settings.endpoint(target, address)?;
+            match endpoint.connect().await {
                 Ok(_) => {
-                    reachable.insert((index, address));
+                    reachable.insert((index, address), endpoint);
                 }
                 Err(source) => {
                     first_error.get_or_insert(ClientError::Connect {
@@ -224,11 +226,11 @@ async fn balanced(targets: Vec<Target>, settings: Settings, re_resolve: Duration
         }));
     }
     let (channel, changes) = Channel::balance_channel::<Key>(64);
-    for &(index, address) in &reachable {
-        let endpoint = settings.endpoint(&targets[index], address)?;
-        let _ = changes.send(Change::Insert((index, address), endpoint)).await;
+    let known = reachable.keys().copied().collect();
+    for (key, endpoint) in reachable {
+        let _ = changes.send(Change::Insert(key, endpoint)).await;
     }
-    tokio::spawn(follow_resolution(targets, settings, re_resolve, reachable, changes));
+    tokio::spawn(follow_resolution(targets, settings, re_resolve, known, changes));
     Ok(channel)
 }
 
@@ -257,9 +259,13 @@ async fn follow_resolution(
             }
         }
         for &key in current.difference(&known) {
-            // The settings made an endpoint for the first servers; they make one for any other.
-            let Ok(endpoint) = settings.endpoint(&targets[key.0], key.1) else {
-                continue;
+            // The same settings made endpoints for this target at start, so this does not fail in practice.
+            let endpoint = match settings.endpoint(&targets[key.0], key.1) {
+                Ok(endpoint) => endpoint,
+                Err(e) => {
+                    tracing::warn!(error = %e, server = %key.1, "cannot add server");
+                    continue;
+                }
             };
             tracing::info!(server = %key.1, "server added");
             let _ = changes.send(Change::Insert(key, endpoint)).await;

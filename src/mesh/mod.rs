@@ -163,9 +163,8 @@ impl TetMesh {
 
     /// Builds and validates a mesh from a VTK unstructured grid (`.vtu`, legacy `.vtk`) and its
     /// configuration (which names the regions by label).
-    pub fn from_vtk(path: &std::path::Path, config: MeshConfig) -> Result<Self, MeshError> {
-        let file = vtk::read(path, &config)?;
-        Self::from_labelled(file, &path.display().to_string(), config)
+    pub fn from_vtk(bytes: &[u8], origin: &str, format: vtk::Format, config: MeshConfig) -> Result<Self, MeshError> {
+        Self::from_labelled(vtk::read(bytes, origin, format, &config)?, origin, config)
     }
 
     /// Builds and validates a mesh from its labelled form, however it was read.

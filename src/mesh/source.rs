@@ -67,24 +67,15 @@ fn read_config(dir: &Path) -> Result<MeshConfig, MeshError> {
     MeshConfig::parse(&text, &path.display().to_string())
 }
 
-/// A mesh file, MSH or VTK by its extension, with its configuration. The file is opened first: a
+/// A mesh file, MSH or VTK by its extension, with its configuration. The file is read first: a
 /// missing mesh is the error to report, not the configuration beside it.
 fn load_file(path: &Path, config: impl FnOnce() -> Result<MeshConfig, MeshError>) -> Result<TetMesh, MeshError> {
-    if vtk::is_vtk(path) {
-        let file = std::fs::File::open(path).map_err(|source| MeshError::Io {
-            path: path.display().to_string(),
-            source,
-        })?;
-        if file.metadata().is_ok_and(|m| m.is_dir()) {
-            return Err(MeshError::Io {
-                path: path.display().to_string(),
-                source: std::io::Error::from(std::io::ErrorKind::IsADirectory),
-            });
-        }
-        return TetMesh::from_vtk(path, config()?);
-    }
     let bytes = read(path)?;
-    TetMesh::from_msh(&bytes, &path.display().to_string(), config()?)
+    let origin = path.display().to_string();
+    match vtk::format(path) {
+        Some(format) => TetMesh::from_vtk(&bytes, &origin, format, config()?),
+        None => TetMesh::from_msh(&bytes, &origin, config()?),
+    }
 }
 
 /// Loads and validates the mesh a source names.

@@ -26,29 +26,40 @@ use super::{MeshConfig, MeshError, TetMesh};
 /// Cell arrays read as region labels, in order of preference.
 const REGION_ARRAYS: [&str; 2] = ["region", "labels"];
 
-/// Whether `path` names a VTK file nak reads (by extension).
-pub fn is_vtk(path: &Path) -> bool {
-    matches!(path.extension().and_then(|e| e.to_str()), Some("vtu" | "vtk"))
+/// The two VTK file formats nak reads and writes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Format {
+    /// `.vtu`: XML.
+    Xml,
+    /// `.vtk`: the legacy format (binary is big-endian).
+    Legacy,
 }
 
-/// Reads a VTK unstructured grid as a labelled mesh; region names come from `config`.
-pub fn read(path: &Path, config: &MeshConfig) -> Result<MshFile, MeshError> {
-    let origin = path.display().to_string();
+/// The VTK format a file name says (by extension), if any.
+pub fn format(path: &Path) -> Option<Format> {
+    match path.extension().and_then(|e| e.to_str()) {
+        Some("vtu") => Some(Format::Xml),
+        Some("vtk") => Some(Format::Legacy),
+        _ => None,
+    }
+}
+
+/// Reads a VTK unstructured grid from the bytes of a file as a labelled mesh; region names come from
+/// `config`.
+pub fn read(bytes: &[u8], origin: &str, format: Format, config: &MeshConfig) -> Result<MshFile, MeshError> {
     let error = |message: String| MeshError::Parse {
-        path: origin.clone(),
+        path: origin.to_owned(),
         location: "VTK".into(),
         message,
     };
     // vtkio reports malformed input as errors, but a few of its conversions assert; a corrupt file
     // must be refused, never bring the server down.
-    let imported = std::panic::catch_unwind(|| {
-        let mut vtk = vtkio::Vtk::import(path)?;
-        vtk.load_all_pieces()?;
-        Ok::<_, vtkio::Error>(vtk)
+    let imported = std::panic::catch_unwind(|| match format {
+        Format::Xml => vtkio::Vtk::parse_xml(bytes),
+        Format::Legacy => vtkio::Vtk::parse_legacy_be(bytes),
     });
     let vtk = match imported {
         Ok(Ok(vtk)) => vtk,
-        Ok(Err(vtkio::Error::IO(source))) => return Err(MeshError::Io { path: origin, source }),
         Ok(Err(e)) => return Err(error(format!("not a readable VTK file: {e}"))),
         Err(_) => return Err(error("not a readable VTK file (the VTK reader failed on it)".into())),
     };
@@ -275,17 +286,17 @@ fn node_set(array: &NamedArray, node_count: usize) -> Option<Vec<usize>> {
     (flags.len() == node_count).then(|| (0..node_count).filter(|&n| flags[n] != 0).collect())
 }
 
-fn is_integer(buffer: &IOBuffer) -> bool {
-    !matches!(buffer, IOBuffer::F32(_) | IOBuffer::F64(_))
-}
-
+/// An integer array's values; `None` for floats, and for values beyond i32 (no label or flag is that
+/// large, and truncating one would put a tetrahedron in the wrong region).
 fn integers(buffer: &IOBuffer) -> Option<Vec<i32>> {
-    if !is_integer(buffer) {
+    if matches!(buffer, IOBuffer::F32(_) | IOBuffer::F64(_)) {
         return None;
     }
     buffer
-        .cast_into::<i64>()
-        .map(|v| v.into_iter().map(|x| x as i32).collect())
+        .cast_into::<i64>()?
+        .into_iter()
+        .map(|x| i32::try_from(x).ok())
+        .collect()
 }
 
 /// Writes `mesh` as a VTK unstructured grid (`.vtu` XML or legacy `.vtk`, by extension): points
@@ -297,9 +308,9 @@ pub fn write(mesh: &TetMesh, displacement: Option<&[f32]>, path: &Path) -> Resul
         path: path.display().to_string(),
         source: std::io::Error::other(message),
     };
-    if !is_vtk(path) {
+    let Some(format) = format(path) else {
         return Err(io_error("a VTK file name ends in .vtu or .vtk".into()));
-    }
+    };
     let points: Vec<f64> = mesh
         .positions
         .iter()
@@ -353,7 +364,7 @@ pub fn write(mesh: &TetMesh, displacement: Option<&[f32]>, path: &Path) -> Resul
             })],
         },
     };
-    let legacy = path.extension().is_some_and(|e| e == "vtk");
+    let legacy = format == Format::Legacy;
     let vtk = vtkio::Vtk {
         version: if legacy {
             Version::new_legacy(4, 2)

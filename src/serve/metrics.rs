@@ -5,7 +5,7 @@
 //! Request counts and latency histograms are updated per answer; admission, recorder and model
 //! figures are read from their owners at scrape time rather than kept twice.
 
-use std::collections::BTreeSet;
+use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -30,14 +30,14 @@ const UNKNOWN_MODEL: &str = "unknown";
 
 #[derive(Debug, Clone, Hash, PartialEq, Eq, EncodeLabelSet)]
 struct RequestLabels {
-    model: String,
-    /// The gRPC status code's name, as grpc-go's interceptors write it (`OK`, `InvalidArgument`).
-    code: String,
+    model: Arc<String>,
+    /// The gRPC status code's name, as grpc-go's interceptors write it (`Ok`, `InvalidArgument`).
+    code: Arc<String>,
 }
 
 #[derive(Debug, Clone, Hash, PartialEq, Eq, EncodeLabelSet)]
 struct ModelLabels {
-    model: String,
+    model: Arc<String>,
 }
 
 #[derive(Debug, Clone, Hash, PartialEq, Eq, EncodeLabelSet)]
@@ -55,60 +55,74 @@ fn latency_histogram() -> Histogram {
     Histogram::new(exponential_buckets(25e-6, 2.0, 17))
 }
 
+/// One model's label and latency histograms, looked up once at start: answering a request then costs
+/// no allocation and no lock beyond the request counter's.
+#[derive(Debug)]
+struct ModelSeries {
+    label: Arc<String>,
+    server: Histogram,
+    prior: Histogram,
+    /// For models with a network stage.
+    network: Option<Histogram>,
+}
+
 /// What one server reports to Prometheus.
 #[derive(Debug)]
 pub struct Metrics {
     registry: Registry,
     requests: Family<RequestLabels, Counter>,
-    server: Latency,
-    prior: Latency,
-    network: Latency,
-    served: BTreeSet<String>,
-    with_network: BTreeSet<String>,
+    models: HashMap<String, ModelSeries>,
+    /// Requests naming a model this server does not serve (never answered, so never timed).
+    unknown: Arc<String>,
+    /// Each gRPC code's name, by its number.
+    codes: Vec<Arc<String>>,
 }
 
 impl Metrics {
     pub fn new(engine: Arc<Engine>, admission: Arc<Admission>, recorder: Option<Arc<Recorder>>) -> Self {
-        let served = engine.models().map(|m| m.name.clone()).collect();
-        let with_network = engine
+        let requests = Family::<RequestLabels, Counter>::default();
+        let [server, prior, network]: [Latency; 3] =
+            std::array::from_fn(|_| Family::new_with_constructor(latency_histogram as fn() -> Histogram));
+        let models = engine
             .models()
-            .filter(|m| m.kind == ModelKind::Neural)
-            .map(|m| m.name.clone())
+            .map(|m| {
+                let labels = ModelLabels {
+                    model: Arc::new(m.name.clone()),
+                };
+                let series = ModelSeries {
+                    server: server.get_or_create_owned(&labels),
+                    prior: prior.get_or_create_owned(&labels),
+                    network: (m.kind == ModelKind::Neural).then(|| network.get_or_create_owned(&labels)),
+                    label: labels.model,
+                };
+                (m.name.clone(), series)
+            })
             .collect();
-        let mut metrics = Self {
-            registry: Registry::with_prefix("nak"),
-            requests: Family::default(),
-            server: Family::new_with_constructor(latency_histogram),
-            prior: Family::new_with_constructor(latency_histogram),
-            network: Family::new_with_constructor(latency_histogram),
-            served,
-            with_network,
-        };
-        let registry = &mut metrics.registry;
+        let mut registry = Registry::with_prefix("nak");
         registry.register(
             "requests",
             "Predict calls and stream messages answered, by model and gRPC status code",
-            metrics.requests.clone(),
+            requests.clone(),
         );
         let latencies = [
             (
                 "server_latency",
                 "Server time per answered request, from decoded request to response ready (Timing.total_us)",
-                &metrics.server,
+                server,
             ),
             (
                 "prior_latency",
                 "Time evaluating the prior per answered request (Timing.prior_us)",
-                &metrics.prior,
+                prior,
             ),
             (
                 "network_latency",
                 "Time evaluating the network per answered request, for models with one (Timing.network_us)",
-                &metrics.network,
+                network,
             ),
         ];
         for (name, help, family) in latencies {
-            registry.register_with_unit(name, help, Unit::Seconds, family.clone());
+            registry.register_with_unit(name, help, Unit::Seconds, family);
         }
         registry.register_collector(Box::new(State {
             engine,
@@ -116,40 +130,33 @@ impl Metrics {
             recorder,
             started: Instant::now(),
         }));
-        metrics
+        Self {
+            registry,
+            requests,
+            models,
+            unknown: Arc::new(UNKNOWN_MODEL.to_owned()),
+            codes: (0..=Code::Unauthenticated as i32)
+                .map(|c| Arc::new(format!("{:?}", Code::from_i32(c))))
+                .collect(),
+        }
     }
 
     /// Counts one answer (or refusal) to a request for `model`, with its stage times when answered.
     pub fn observe(&self, model: &str, code: Code, timing: Option<&Timing>) {
-        let model = self.label(model);
-        self.requests
-            .get_or_create(&RequestLabels {
-                model: model.to_owned(),
-                code: format!("{code:?}"),
-            })
-            .inc();
-        let Some(timing) = timing else { return };
-        let labels = ModelLabels {
-            model: model.to_owned(),
+        let name = if model.is_empty() { KelvinletModel::NAME } else { model };
+        let series = self.models.get(name);
+        let labels = RequestLabels {
+            model: series.map_or(&self.unknown, |s| &s.label).clone(),
+            code: self.codes[code as usize].clone(),
         };
-        self.server
-            .get_or_create(&labels)
-            .observe(f64::from(timing.total_us) * 1e-6);
-        self.prior
-            .get_or_create(&labels)
-            .observe(f64::from(timing.prior_us) * 1e-6);
-        if self.with_network.contains(model) {
-            self.network
-                .get_or_create(&labels)
-                .observe(f64::from(timing.network_us) * 1e-6);
-        }
-    }
-
-    fn label<'a>(&self, model: &'a str) -> &'a str {
-        match model {
-            "" => KelvinletModel::NAME,
-            name if self.served.contains(name) => name,
-            _ => UNKNOWN_MODEL,
+        self.requests.get_or_create(&labels).inc();
+        let (Some(series), Some(timing)) = (series, timing) else {
+            return;
+        };
+        series.server.observe(f64::from(timing.total_us) * 1e-6);
+        series.prior.observe(f64::from(timing.prior_us) * 1e-6);
+        if let Some(network) = &series.network {
+            network.observe(f64::from(timing.network_us) * 1e-6);
         }
     }
 

@@ -16,6 +16,7 @@ use serde::Deserialize;
 use tokio::net::TcpListener;
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::ServerTlsConfig;
+use tonic::transport::server::TcpIncoming;
 use tracing::{info, warn};
 
 pub use convert::{f32_bytes, grasp_message, response_rows, vec3_rows};
@@ -169,8 +170,6 @@ pub enum ServeError {
     Reflection(#[from] tonic_reflection::server::Error),
     #[error(transparent)]
     Security(#[from] SecurityError),
-    #[error("metrics endpoint: {0}")]
-    Metrics(#[source] std::io::Error),
 }
 
 /// How much one server takes in: the largest message, and the most requests admitted at once.
@@ -257,30 +256,15 @@ pub async fn run(
     let (stopped, _) = tokio::sync::watch::channel(());
     if let Some(listener) = metrics_listener {
         info!(address = ?listener.local_addr().ok(), "metrics at /metrics");
-        let mut stop = stopped.subscribe();
-        let served = metrics::serve(metrics, listener, async move {
-            let _ = stop.changed().await;
-        });
-        tokio::spawn(async move {
-            if let Err(e) = served.await {
-                tracing::error!(error = %e, "the metrics endpoint stopped");
-            }
-        });
+        let served = metrics::serve(metrics, listener, on_stop(&stopped));
+        tokio::spawn(log_failure("the metrics endpoint", served));
     }
     if let Some(listener) = health_listener {
         info!(address = ?listener.local_addr().ok(), "health checks (plain HTTP/2)");
-        let mut stop = stopped.subscribe();
-        let incoming = tonic::transport::server::TcpIncoming::from(listener);
         let served = tonic::transport::Server::builder()
             .add_service(health_service.clone())
-            .serve_with_incoming_shutdown(incoming, async move {
-                let _ = stop.changed().await;
-            });
-        tokio::spawn(async move {
-            if let Err(e) = served.await {
-                tracing::error!(error = %e, "the health port stopped");
-            }
-        });
+            .serve_with_incoming_shutdown(TcpIncoming::from(listener), on_stop(&stopped));
+        tokio::spawn(log_failure("the health port", served));
     }
     info!(
         max_in_flight = intake.max_in_flight,
@@ -294,7 +278,7 @@ pub async fn run(
     );
     // Nagle's algorithm would hold back the tail of a response until the client's delayed ACK, 40 ms
     // on Linux; the builder's own nodelay setting does not reach sockets accepted here.
-    let incoming = tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true));
+    let incoming = TcpIncoming::from(listener).with_nodelay(Some(true));
     let mut builder = tonic::transport::Server::builder();
     if let Some(tls) = tls {
         builder = builder.tls_config(tls)?;
@@ -309,6 +293,24 @@ pub async fn run(
     drop(stopped);
     info!("stopped");
     Ok(())
+}
+
+/// Completes when the gRPC server has stopped (it drops `stopped`).
+fn on_stop(stopped: &tokio::sync::watch::Sender<()>) -> impl std::future::Future<Output = ()> + Send + 'static {
+    let mut stop = stopped.subscribe();
+    async move {
+        let _ = stop.changed().await;
+    }
+}
+
+/// Runs a side port (metrics, health) to its end, logging why if it fails: it never stops serving.
+async fn log_failure<E: std::fmt::Display>(
+    what: &'static str,
+    served: impl std::future::Future<Output = Result<(), E>>,
+) {
+    if let Err(e) = served.await {
+        tracing::error!(error = %e, "{what} stopped");
+    }
 }
 
 /// Warns when callers beyond this host could reach a server without TLS: requests, answers and any
