@@ -289,3 +289,46 @@ fn inverting_trial_steps_are_cut_and_the_solve_still_converges() {
     assert!(result.stats.step_cuts > 0, "{:?}", result.stats);
     assert!(solver.energy(&result.displacement, 0.0).is_some());
 }
+
+#[test]
+fn corrections_from_an_earlier_factor_reach_the_same_equilibrium_with_fewer_factorizations() {
+    let m = mesh(&Fixture::bar([8, 3, 3], [0.01; 3]));
+    let pull = [0.03, 0.04, -0.02];
+    let prescribed: Vec<(u32, [f64; 3])> = m.node_sets["grasp_01"].iter().map(|&n| (n, pull)).collect();
+    let start = vec![[0.0; 3]; m.node_count()];
+    let solve = |reuse_factorization| {
+        let options = NewtonOptions {
+            reuse_factorization,
+            ..NewtonOptions::default()
+        };
+        Hyperelastic::new(&m, true, options)
+            .unwrap()
+            .solve(Load {
+                start: &start,
+                prescribed: &prescribed,
+                body_from: 0.0,
+                body_to: 1.0,
+            })
+            .unwrap()
+    };
+    let (reused, exact) = (solve(true), solve(false));
+    assert!(reused.stats.krylov_iterations > 0, "{:?}", reused.stats);
+    assert_eq!(exact.stats.krylov_iterations, 0);
+    assert!(
+        reused.stats.factorizations < exact.stats.factorizations,
+        "{:?} against {:?}",
+        reused.stats,
+        exact.stats
+    );
+    // Both stop at ‖r‖ ≤ 1e-6 of the load; the displacement each leaves undone is about that
+    // fraction of the field, so two answers agree to a few 1e-6 of it.
+    let norm = |u: &[[f64; 3]]| u.iter().flatten().map(|v| v * v).sum::<f64>().sqrt();
+    let difference: Vec<[f64; 3]> = reused
+        .displacement
+        .iter()
+        .zip(&exact.displacement)
+        .map(|(a, b)| std::array::from_fn(|k| a[k] - b[k]))
+        .collect();
+    let relative = norm(&difference) / norm(&exact.displacement);
+    assert!(relative < 1e-5, "relative difference {relative:.2e}");
+}

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use nak::data::dataset::{DatasetInfo, SPLIT_RULE};
-use nak::data::generate::{generate_linear, generate_nonlinear};
+use nak::data::generate::{NonlinearTally, generate_linear, generate_nonlinear};
 use nak::fem::GreenLinear;
 use nak::fem::nonlinear::NewtonOptions;
 use nak::fem::preload::Preloaded;
@@ -139,24 +139,45 @@ pub fn run(args: DatagenArgs, mesh: &TetMesh, cache: PathBuf) -> anyhow::Result<
     );
     match args.regime {
         Regime::Linear => println!("{} direct solves", generated.direct_solves),
-        Regime::Nonlinear => {
-            let t = &generated.nonlinear;
-            let per = |v: f64| v / t.solved.max(1) as f64;
-            println!(
-                "nonlinear: {} solved, {:.2} s per sample on one core, Newton iterations {:.1} mean / {} max, \
-                 load steps {:.1} mean, {} with step cuts ({:.1} %), {} with shifted tangents, {} failed ({:.1} %)",
-                t.solved,
-                per(t.solve_seconds),
-                per(t.newton_iterations as f64),
-                t.max_newton_iterations,
-                per(t.load_steps as f64),
-                t.cut,
-                100.0 * per(t.cut as f64),
-                t.shifted,
-                t.failed,
-                100.0 * per(t.failed as f64),
-            );
-        }
+        Regime::Nonlinear => print_nonlinear_tally(&generated.nonlinear),
     }
     Ok(())
+}
+
+/// The solver's effort over the samples solved in this run, and where its time went.
+fn print_nonlinear_tally(t: &NonlinearTally) {
+    let per = |v: f64| v / t.solved.max(1) as f64;
+    let mut seconds = t.solve_seconds.clone();
+    seconds.sort_by(f64::total_cmp);
+    let median = seconds.get(seconds.len() / 2).copied().unwrap_or(0.0);
+    println!(
+        "nonlinear: {} solved, per sample on one core {:.2} s median / {:.2} s mean, Newton iterations {:.1} mean / {} max, \
+         load steps {:.1} mean, factorizations {:.1} mean, conjugate-gradient iterations {:.1} mean, \
+         {} with step cuts ({:.1} %), {} with shifted tangents, {} failed ({:.1} %)",
+        t.solved,
+        median,
+        per(seconds.iter().sum()),
+        per(t.newton_iterations as f64),
+        t.max_newton_iterations,
+        per(t.load_steps as f64),
+        per(t.factorizations as f64),
+        per(t.krylov_iterations as f64),
+        t.cut,
+        100.0 * per(t.cut as f64),
+        t.shifted,
+        t.failed,
+        100.0 * per(t.failed as f64),
+    );
+    let p = &t.profile;
+    let total: f64 = seconds.iter().sum::<f64>().max(1e-9);
+    let share = |d: std::time::Duration| 100.0 * d.as_secs_f64() / total;
+    let stages = p.assembly + p.factorization + p.linear_solve + p.line_search;
+    println!(
+        "time: assembly {:.0} %, factorization {:.0} %, linear solves {:.0} %, line search {:.0} %, other {:.0} %",
+        share(p.assembly),
+        share(p.factorization),
+        share(p.linear_solve),
+        share(p.line_search),
+        (100.0 - share(stages)).max(0.0),
+    );
 }

@@ -8,7 +8,7 @@ use rayon::prelude::*;
 
 use super::GraspSampler;
 use super::dataset::{self, DatasetError, DatasetInfo, SampleRecord, SolveRecord};
-use crate::fem::nonlinear::SolveStats;
+use crate::fem::nonlinear::{SolveProfile, SolveStats};
 use crate::fem::preload::Preloaded;
 use crate::fem::{GreenLinear, nodal_forces, solve_dirichlet};
 use crate::mesh::TetMesh;
@@ -34,20 +34,28 @@ pub struct NonlinearTally {
     pub cut: usize,
     pub failed: usize,
     pub shifted: usize,
-    /// Sum of per-sample solve times (s): divided by `solved`, the cost of one sample on one core.
-    pub solve_seconds: f64,
+    pub factorizations: usize,
+    pub krylov_iterations: usize,
+    /// Per-sample solve times (s), in the order the samples finished: their sum divided by
+    /// `solved` is the cost of one sample on one core.
+    pub solve_seconds: Vec<f64>,
     pub max_newton_iterations: usize,
+    /// Where the solved samples' time went.
+    pub profile: SolveProfile,
 }
 
 impl NonlinearTally {
-    fn add(&mut self, stats: &SolveStats, failed: bool, seconds: f64) {
+    fn add(&mut self, stats: &SolveStats, profile: &SolveProfile, failed: bool, seconds: f64) {
         self.solved += 1;
+        self.factorizations += stats.factorizations;
+        self.krylov_iterations += stats.krylov_iterations;
+        self.profile.add(profile);
         self.newton_iterations += stats.newton_iterations;
         self.load_steps += stats.load_steps;
         self.cut += usize::from(stats.step_cuts > 0);
         self.failed += usize::from(failed);
         self.shifted += usize::from(stats.shifted_factorizations > 0);
-        self.solve_seconds += seconds;
+        self.solve_seconds.push(seconds);
         self.max_newton_iterations = self.max_newton_iterations.max(stats.newton_iterations);
     }
 }
@@ -125,8 +133,10 @@ pub fn generate_nonlinear(
         let started = std::time::Instant::now();
         let mut field = vec![f32::NAN; 3 * mesh.node_count()];
         let prescribed = sample.prescribed();
+        let mut profile = SolveProfile::default();
         let record = match preloaded.grasp(&prescribed) {
             Ok(equilibrium) => {
+                profile = equilibrium.profile;
                 write_field(&mut field, &equilibrium.displacement);
                 let held: Vec<u32> = prescribed.iter().map(|&(n, _)| n).collect();
                 sample.set_forces(|n| force_of(&held, &equilibrium.reactions, n));
@@ -144,7 +154,12 @@ pub fn generate_nonlinear(
             }
         };
         if let Ok(mut t) = tally.lock() {
-            t.add(&record.stats, record.failure.is_some(), started.elapsed().as_secs_f64());
+            t.add(
+                &record.stats,
+                &profile,
+                record.failure.is_some(),
+                started.elapsed().as_secs_f64(),
+            );
         }
         sample.solver = Some(record);
         Ok(field)

@@ -1,10 +1,12 @@
 //! Finite elements: linear elasticity (and the exact real-time linear model built on it), and
 //! hyperelasticity with gravity preload for nonlinear ground truth.
 
+pub mod factor;
 pub mod green;
 pub mod hyperelastic;
 pub mod linear;
 pub mod nonlinear;
+pub mod ordering;
 pub mod preload;
 
 pub use green::{GreenLinear, GreenLinearModel};

@@ -4,20 +4,24 @@
 //!
 //! The unknowns are every DOF of every node that is not `fixed`; prescribed (grasped) DOFs stay in the
 //! system as identity rows. The sparsity pattern is therefore the same for every grasp, and the
-//! symbolic Cholesky factorization is computed once per mesh.
+//! symbolic Cholesky factorization is computed once per mesh. Within a solve the prescribed set does
+//! not change, so the factor of one tangent preconditions the next ones (see [`super::factor`]).
 
-use std::time::Instant;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
 
-use faer::linalg::solvers::Solve;
-use faer::sparse::linalg::solvers::{Llt, SymbolicLlt};
-use faer::sparse::{SparseColMat, SymbolicSparseColMat, Triplet};
-use faer::{Mat, Side};
+use faer::Side;
+use faer::perm::PermRef;
+use faer::sparse::linalg::cholesky::{SymbolicCholesky, SymmetricOrdering, factorize_symbolic_cholesky};
+use faer::sparse::{SparseColMat, SparseColMatRef, SymbolicSparseColMat, Triplet};
 use nalgebra::Matrix3;
 use serde::{Deserialize, Serialize};
 
 use super::FemError;
+use super::factor::{Krylov, TangentFactor};
 use super::hyperelastic::{MooneyRivlin, Tangent};
 use super::linear::{DofMap, shape_gradients};
+use super::ordering::nested_dissection;
 use crate::mesh::TetMesh;
 use crate::mesh::topology::Vec3;
 
@@ -28,22 +32,44 @@ pub struct NewtonOptions {
     pub residual_tolerance: f64,
     /// ... and the energy increment |Δu·r| ≤ this × the load step's first one.
     pub energy_tolerance: f64,
+    /// Load steps before the last only lead the way to it: they end at ‖residual‖ ≤ this × the
+    /// same scale, and the last meets both criteria above. (Hyperelastic equilibrium does not
+    /// depend on the path, only on where it ends.)
+    pub intermediate_tolerance: f64,
     /// Newton iterations per load step before the step is cut.
     pub max_iterations: usize,
     /// The first load step, as a fraction of the whole load.
     pub initial_step: f64,
     /// Load-step halvings before the solve is declared failed.
     pub max_step_cuts: usize,
+    /// Solve Newton corrections by conjugate gradients preconditioned with the factor of an earlier
+    /// tangent of the same solve, factorizing only when that does not converge. Off: every
+    /// correction factorizes its own tangent (the reference the fast path is tested against).
+    pub reuse_factorization: bool,
 }
+
+/// Relative residual to which conjugate gradients solve a Newton correction (an inexact Newton
+/// method): each correction then cuts the nonlinear residual about a hundredfold near the
+/// solution, as fast as exact corrections do from the residuals Newton starts them at.
+const KRYLOV_TOLERANCE: f64 = 1e-2;
+/// Shifted factorizations of one indefinite tangent before the load step is cut.
+const MAX_SHIFTS: usize = 8;
+/// Conjugate-gradient iterations before an old factor is given up for a new one.
+const MAX_KRYLOV_ITERATIONS: usize = 12;
+/// A correction that needed more conjugate-gradient iterations than this asks for a fresh factor
+/// at the next one: on the phantom a factorization costs about eight iterations.
+const REFACTOR_AFTER: usize = 8;
 
 impl Default for NewtonOptions {
     fn default() -> Self {
         Self {
             residual_tolerance: 1e-6,
             energy_tolerance: 1e-12,
+            intermediate_tolerance: 1e-3,
             max_iterations: 25,
             initial_step: 1.0,
             max_step_cuts: 12,
+            reuse_factorization: true,
         }
     }
 }
@@ -70,8 +96,37 @@ pub struct SolveStats {
     pub newton_iterations: usize,
     /// Trial states rejected because an element inverted (J ≤ 0).
     pub inverted_trials: usize,
-    /// Factorizations that needed a diagonal shift because the tangent was not positive definite.
+    /// Tangents that were not positive definite and were factorized with a diagonal shift.
     pub shifted_factorizations: usize,
+    /// Numeric Cholesky factorizations of the tangent (a shifted retry counts again).
+    #[serde(default)]
+    pub factorizations: usize,
+    /// Conjugate-gradient iterations preconditioned by an earlier factor.
+    #[serde(default)]
+    pub krylov_iterations: usize,
+}
+
+/// Where a solve's time went. Kept apart from [`SolveStats`], which datasets store: timings differ
+/// from run to run, counts do not.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct SolveProfile {
+    /// Element loops computing forces and tangents.
+    pub assembly: Duration,
+    /// Numeric Cholesky factorizations.
+    pub factorization: Duration,
+    /// Triangular solves and conjugate gradients.
+    pub linear_solve: Duration,
+    /// Energy evaluations of line searches and predictor checks.
+    pub line_search: Duration,
+}
+
+impl SolveProfile {
+    pub fn add(&mut self, other: &SolveProfile) {
+        self.assembly += other.assembly;
+        self.factorization += other.factorization;
+        self.linear_solve += other.linear_solve;
+        self.line_search += other.line_search;
+    }
 }
 
 /// A converged equilibrium: displacement of every node from the reference configuration.
@@ -81,6 +136,7 @@ pub struct Equilibrium {
     /// Force the constraints exert on each prescribed node, in the order given.
     pub reactions: Vec<[f64; 3]>,
     pub stats: SolveStats,
+    pub profile: SolveProfile,
     pub iterations: Vec<Iteration>,
     pub seconds: f64,
 }
@@ -94,6 +150,30 @@ pub struct Load<'a> {
     pub prescribed: &'a [(u32, [f64; 3])],
     pub body_from: f64,
     pub body_to: f64,
+}
+
+/// What one solve carries from Newton iteration to iteration.
+struct Work {
+    stats: SolveStats,
+    profile: SolveProfile,
+    trace: Vec<Iteration>,
+    factor: TangentFactor,
+    /// The tangent's CSC values, reassembled each iteration.
+    tangent: Vec<f64>,
+    /// The factor has grown stale: factorize at the next correction.
+    refactor: bool,
+    /// The diagonal shift the last indefinite tangent needed.
+    last_shift: f64,
+    /// The factor is of a shifted tangent: it preconditions nothing but itself.
+    factor_shifted: bool,
+}
+
+/// Runs `f` and adds its wall time to `slot`.
+fn timed<T>(slot: &mut Duration, f: impl FnOnce() -> T) -> T {
+    let started = Instant::now();
+    let value = f();
+    *slot += started.elapsed();
+    value
 }
 
 /// Why a load step failed; the solver cuts the step and retries until it runs out of cuts.
@@ -133,7 +213,7 @@ pub struct Hyperelastic {
     /// For each tetrahedron's 12×12 entry (row-major), its index in the CSC values, or `u32::MAX`
     /// where either DOF is fixed.
     scatter: Vec<[u32; 144]>,
-    symbolic: SymbolicLlt<usize>,
+    symbolic: Arc<SymbolicCholesky<usize>>,
     /// Position of each unknown's diagonal entry in the CSC values.
     diagonal: Vec<usize>,
     /// Lumped gravity per node (N).
@@ -211,8 +291,20 @@ impl Hyperelastic {
                 s
             })
             .collect();
-        let symbolic = SymbolicLlt::try_new(pattern.as_ref(), Side::Lower)
-            .map_err(|e| FemError::Assembly(format!("symbolic factorization: {e:?}")))?;
+        let ordering = nested_dissection(&mesh.tets, mesh.node_count(), &dofs)?;
+        let symbolic = factorize_symbolic_cholesky(
+            pattern.as_ref(),
+            Side::Lower,
+            SymmetricOrdering::Custom(PermRef::new_checked(&ordering.forward, &ordering.inverse, n)),
+            Default::default(),
+        )
+        .map_err(|e| FemError::Assembly(format!("symbolic factorization: {e:?}")))?;
+        tracing::debug!(
+            unknowns = n,
+            tangent_entries = pattern.row_idx().len(),
+            factor_entries = symbolic.len_val(),
+            "tangent pattern and its Cholesky factor"
+        );
         // Every element couples each of its DOFs with itself, so every diagonal entry exists.
         let diagonal = (0..n).map(|d| find(&pattern, d, d).unwrap_or(usize::MAX)).collect();
         // Each element energy is a sum of terms of size ~V(3 C10 + 3 C01 + κ), each exact to ~1e-16.
@@ -238,7 +330,7 @@ impl Hyperelastic {
             dof_owner,
             pattern,
             scatter,
-            symbolic,
+            symbolic: Arc::new(symbolic),
             diagonal,
             body_force,
             options,
@@ -326,8 +418,16 @@ impl Hyperelastic {
     /// Solves for equilibrium along `load`, cutting load steps where Newton fails.
     pub fn solve(&self, load: Load<'_>) -> Result<Equilibrium, FemError> {
         let started = Instant::now();
-        let mut stats = SolveStats::default();
-        let mut iterations = Vec::new();
+        let mut work = Work {
+            stats: SolveStats::default(),
+            profile: SolveProfile::default(),
+            trace: Vec::new(),
+            factor: TangentFactor::new(self.symbolic.clone()),
+            tangent: vec![0.0; self.pattern.row_idx().len()],
+            refactor: false,
+            last_shift: 0.0,
+            factor_shifted: false,
+        };
         let mut u = load.start.to_vec();
         let mut prescribed = vec![false; self.dofs.len()];
         for &(n, _) in load.prescribed {
@@ -341,36 +441,29 @@ impl Hyperelastic {
         while done < 1.0 {
             let target = (done + step).min(1.0);
             let mut trial = u.clone();
-            let step_index = stats.load_steps + stats.step_cuts;
-            let before = iterations.len();
-            match self.load_step(
-                &mut trial,
-                &load,
-                &prescribed,
-                (done, target),
-                step_index,
-                &mut stats,
-                &mut iterations,
-            ) {
-                Ok(newton) => {
-                    tracing::debug!(from = done, to = target, newton, "load step converged");
+            let step_index = work.stats.load_steps + work.stats.step_cuts;
+            let before = work.trace.len();
+            match self.load_step(&mut trial, &load, &prescribed, (done, target), step_index, &mut work) {
+                Ok((reached, newton)) => {
+                    tracing::debug!(from = done, to = reached, newton, "load step converged");
                     u = trial;
-                    done = target;
-                    stats.load_steps += 1;
+                    step = reached - done;
+                    done = reached;
+                    work.stats.load_steps += 1;
                     if newton <= 4 {
                         step = (step * 1.5).min(1.0);
                     }
                 }
                 Err(failure) => {
                     tracing::debug!(from = done, to = target, "load step cut: {}", failure.describe());
-                    stats.step_cuts += 1;
+                    work.stats.step_cuts += 1;
                     step /= 2.0;
-                    if stats.step_cuts > self.options.max_step_cuts {
+                    if work.stats.step_cuts > self.options.max_step_cuts {
                         return Err(FemError::NotConverged {
                             load: target,
                             step: step_index,
                             reason: failure.describe(),
-                            residuals: iterations[before..].iter().map(|i| i.residual).collect(),
+                            residuals: work.trace[before..].iter().map(|i| i.residual).collect(),
                         });
                     }
                 }
@@ -378,7 +471,7 @@ impl Hyperelastic {
         }
         let (_, internal) = self.internal_forces(&u, None).ok_or_else(|| FemError::NotConverged {
             load: 1.0,
-            step: stats.load_steps,
+            step: work.stats.load_steps,
             reason: "the converged state has an inverted element".into(),
             residuals: Vec::new(),
         })?;
@@ -392,15 +485,17 @@ impl Hyperelastic {
         Ok(Equilibrium {
             displacement: u,
             reactions,
-            stats,
-            iterations,
+            stats: work.stats,
+            profile: work.profile,
+            iterations: work.trace,
             seconds: started.elapsed().as_secs_f64(),
         })
     }
 
-    /// One load step from `from` to `to` (load fractions): a tangent predictor that moves the
-    /// prescribed nodes, then Newton corrections with line search. Returns the Newton iterations.
-    #[allow(clippy::too_many_arguments)]
+    /// One load step from `from` towards `to` (load fractions): a tangent predictor that moves the
+    /// prescribed nodes, then Newton corrections with line search. A predictor that would invert an
+    /// element is shortened (it is linear in the load increment, so no new solve is needed) and the
+    /// step ends where it lands. Returns the load reached and the Newton iterations.
     fn load_step(
         &self,
         u: &mut [[f64; 3]],
@@ -408,10 +503,8 @@ impl Hyperelastic {
         prescribed: &[bool],
         (from, to): (f64, f64),
         load_step: usize,
-        stats: &mut SolveStats,
-        trace: &mut Vec<Iteration>,
-    ) -> Result<usize, StepFailure> {
-        let body = load.body_from + to * (load.body_to - load.body_from);
+        work: &mut Work,
+    ) -> Result<(f64, usize), StepFailure> {
         let mut imposed = vec![0.0; self.dofs.len()];
         for &(n, target) in load.prescribed {
             for (c, &goal) in target.iter().enumerate() {
@@ -421,13 +514,18 @@ impl Hyperelastic {
                 }
             }
         }
+        let mut to = to;
         // |Δu·r| of the step's first Newton correction: the energy criterion's reference (Bathe).
         let mut first_energy_norm = None::<f64>;
-        let mut values = vec![0.0; self.pattern.row_idx().len()];
         for iteration in 0..=self.options.max_iterations {
-            // Only the predictor can leave an inverted state behind (the line search rejects them).
-            let Some((strain, internal)) = self.internal_forces(u, Some(&mut values)) else {
-                stats.inverted_trials += 1;
+            let body = load.body_from + to * (load.body_to - load.body_from);
+            let mut tangent = std::mem::take(&mut work.tangent);
+            let assembled = timed(&mut work.profile.assembly, || {
+                self.internal_forces(u, Some(&mut tangent))
+            });
+            // Only a predictor could leave an inverted state behind, and it is checked.
+            let Some((strain, internal)) = assembled else {
+                work.stats.inverted_trials += 1;
                 return Err(StepFailure::Inverted);
             };
             let mut residual = vec![0.0; self.dofs.len()];
@@ -447,56 +545,85 @@ impl Hyperelastic {
             let scale = external_norm.sqrt().max(reaction_norm.sqrt()).max(f64::MIN_POSITIVE);
             let energy = strain - body * self.body_work(u);
             let predictor = iteration == 0;
-            let mut rhs = Mat::<f64>::zeros(self.dofs.len(), 1);
-            for d in 0..self.dofs.len() {
-                rhs[(d, 0)] = match (prescribed[d], predictor) {
+            let mut rhs: Vec<f64> = (0..self.dofs.len())
+                .map(|d| match (prescribed[d], predictor) {
                     (true, true) => imposed[d],
                     (true, false) => 0.0,
                     (false, _) => -residual[d],
-                };
-            }
-            self.constrain(&mut values, prescribed, predictor.then_some(&imposed[..]), &mut rhs);
-            let direction = self.factorize_and_solve(&mut values, prescribed, rhs, stats)?;
-            let slope: f64 = (0..self.dofs.len()).map(|d| residual[d] * direction[d]).sum();
-            let mut record = |step_length| {
-                trace.push(Iteration {
-                    load_step,
-                    load: to,
-                    residual: residual_norm,
-                    energy,
-                    step_length,
                 })
+                .collect();
+            self.constrain(&mut tangent, prescribed, predictor.then_some(&imposed[..]), &mut rhs);
+            let direction = self.direction(&mut tangent, prescribed, &rhs, work);
+            work.tangent = tangent;
+            let direction = direction?;
+            let slope: f64 = (0..self.dofs.len()).map(|d| residual[d] * direction[d]).sum();
+            let record = |load, step_length| Iteration {
+                load_step,
+                load,
+                residual: residual_norm,
+                energy,
+                step_length,
             };
             if predictor {
-                self.apply(u, &direction, 1.0);
-                record(1.0);
+                let fraction = self.predict(u, &direction, work)?;
+                to = from + fraction * (to - from);
+                work.trace.push(record(to, fraction));
                 continue;
             }
             let energy_norm = slope.abs();
             let reference = *first_energy_norm.get_or_insert(energy_norm);
-            if residual_norm <= self.options.residual_tolerance * scale
-                && energy_norm <= (self.options.energy_tolerance * reference).max(self.energy_noise)
-            {
+            let converged = if to < 1.0 {
+                residual_norm <= self.options.intermediate_tolerance * scale
+            } else {
+                residual_norm <= self.options.residual_tolerance * scale
+                    && energy_norm <= (self.options.energy_tolerance * reference).max(self.energy_noise)
+            };
+            if converged {
                 // The last correction is below both tolerances; taking it costs nothing.
                 self.apply(u, &direction, 1.0);
                 if self.energy(u, body).is_none() {
                     self.apply(u, &direction, -1.0);
                 }
-                return Ok(iteration - 1);
+                return Ok((to, iteration - 1));
             }
             if iteration == self.options.max_iterations {
                 break;
             }
-            stats.newton_iterations += 1;
-            let length = self.line_search(u, &direction, body, energy, slope, stats)?;
-            record(length);
+            work.stats.newton_iterations += 1;
+            let length = self.line_search(u, &direction, body, energy, slope, work)?;
+            work.trace.push(record(to, length));
         }
         Err(StepFailure::NotConverged)
     }
 
+    /// Takes the largest fraction 1, ½, ¼, … of the predictor that inverts no element, each
+    /// halving counted as a step cut; returns the fraction.
+    fn predict(&self, u: &mut [[f64; 3]], direction: &[f64], work: &mut Work) -> Result<f64, StepFailure> {
+        let base = u.to_vec();
+        let mut fraction = 1.0;
+        loop {
+            self.apply(u, direction, fraction);
+            if timed(&mut work.profile.line_search, || self.is_admissible(u)) {
+                return Ok(fraction);
+            }
+            u.copy_from_slice(&base);
+            work.stats.inverted_trials += 1;
+            work.stats.step_cuts += 1;
+            if work.stats.step_cuts > self.options.max_step_cuts {
+                return Err(StepFailure::Inverted);
+            }
+            fraction /= 2.0;
+        }
+    }
+
+    /// Whether no element of `u` is inverted.
+    fn is_admissible(&self, u: &[[f64; 3]]) -> bool {
+        (0..self.tets.len()).all(|t| self.deformation_gradient(t, u).determinant() > 0.0)
+    }
+
     /// Applies the prescribed DOFs to the tangent: their rows and columns become identity, and the
     /// columns' coupling to the free DOFs moves to the right-hand side when they move (predictor).
-    fn constrain(&self, values: &mut [f64], prescribed: &[bool], imposed: Option<&[f64]>, rhs: &mut Mat<f64>) {
+    fn constrain(&self, values: &mut [f64], prescribed: &[bool], imposed: Option<&[f64]>, rhs: &mut [f64]) {
         let (col_ptr, rows) = (self.pattern.col_ptr(), self.pattern.row_idx());
         for col in 0..self.dofs.len() {
             for p in col_ptr[col]..col_ptr[col + 1] {
@@ -505,7 +632,7 @@ impl Hyperelastic {
                     && !prescribed[row]
                     && let Some(imposed) = imposed
                 {
-                    rhs[(row, 0)] -= values[p] * imposed[col];
+                    rhs[row] -= values[p] * imposed[col];
                 }
                 if prescribed[col] || prescribed[row] {
                     values[p] = if row == col { 1.0 } else { 0.0 };
@@ -514,36 +641,72 @@ impl Hyperelastic {
         }
     }
 
-    /// Cholesky of the constrained tangent, shifting its free diagonal (a Levenberg-style
-    /// regularization that keeps the direction a descent one) when it is not positive definite.
-    fn factorize_and_solve(
+    /// Solves the constrained tangent system: by conjugate gradients against the factor of an
+    /// earlier tangent when one is at hand and they converge, else by factorizing this tangent.
+    fn direction(
         &self,
         values: &mut [f64],
         prescribed: &[bool],
-        mut rhs: Mat<f64>,
-        stats: &mut SolveStats,
+        rhs: &[f64],
+        work: &mut Work,
     ) -> Result<Vec<f64>, StepFailure> {
-        let diagonal = &self.diagonal;
-        let mean_diagonal = diagonal.iter().map(|&p| values[p].abs()).sum::<f64>() / diagonal.len().max(1) as f64;
-        let mut shift = 0.0;
-        for attempt in 0..12 {
-            let matrix = faer::sparse::SparseColMatRef::new(self.pattern.as_ref(), values);
-            match Llt::try_new_with_symbolic(self.symbolic.clone(), matrix, Side::Lower) {
-                Ok(factor) => {
-                    factor.solve_in_place(rhs.as_mut());
-                    return Ok((0..self.dofs.len()).map(|d| rhs[(d, 0)]).collect());
+        let mut x = vec![0.0; rhs.len()];
+        if self.options.reuse_factorization && work.factor.is_valid() && !work.refactor && !work.factor_shifted {
+            let matrix = SparseColMatRef::new(self.pattern.as_ref(), values);
+            let factor = &mut work.factor;
+            let outcome = timed(&mut work.profile.linear_solve, || {
+                factor.conjugate_gradients(matrix, rhs, &mut x, KRYLOV_TOLERANCE, MAX_KRYLOV_ITERATIONS)
+            });
+            tracing::debug!(?outcome, "conjugate gradients against an earlier factor");
+            match outcome {
+                Krylov::Converged(iterations) => {
+                    work.stats.krylov_iterations += iterations;
+                    work.refactor = iterations > REFACTOR_AFTER;
+                    return Ok(x);
                 }
-                Err(e) if attempt == 11 => return Err(StepFailure::Factorization(format!("{e:?}"))),
+                Krylov::Stalled => work.stats.krylov_iterations += MAX_KRYLOV_ITERATIONS,
+                Krylov::NegativeCurvature => {}
+            }
+        }
+        self.factorize(values, prescribed, work)?;
+        work.refactor = false;
+        x.copy_from_slice(rhs);
+        let factor = &mut work.factor;
+        timed(&mut work.profile.linear_solve, || factor.solve_in_place(&mut x));
+        Ok(x)
+    }
+
+    /// Cholesky of the constrained tangent, shifting its free diagonal (a Levenberg-style
+    /// regularization that keeps the correction a descent direction) when it is not positive
+    /// definite. A shift starts at 1e-4 of the mean diagonal, or a hundredth of the solve's last
+    /// one if larger, and grows tenfold.
+    fn factorize(&self, values: &mut [f64], prescribed: &[bool], work: &mut Work) -> Result<(), StepFailure> {
+        let mean_diagonal =
+            self.diagonal.iter().map(|&p| values[p].abs()).sum::<f64>() / self.diagonal.len().max(1) as f64;
+        let mut shift = 0.0;
+        for attempt in 0..=MAX_SHIFTS {
+            let matrix = SparseColMatRef::new(self.pattern.as_ref(), values);
+            work.stats.factorizations += 1;
+            let factor = &mut work.factor;
+            match timed(&mut work.profile.factorization, || factor.factorize(matrix)) {
+                Ok(()) => {
+                    work.factor_shifted = shift > 0.0;
+                    if work.factor_shifted {
+                        work.last_shift = shift;
+                    }
+                    return Ok(());
+                }
+                Err(e) if attempt == MAX_SHIFTS => return Err(StepFailure::Factorization(format!("{e:?}"))),
                 Err(_) => {
                     if attempt == 0 {
-                        stats.shifted_factorizations += 1;
+                        work.stats.shifted_factorizations += 1;
                     }
                     let next = if shift == 0.0 {
-                        1e-6 * mean_diagonal
+                        (1e-4 * mean_diagonal).max(0.01 * work.last_shift)
                     } else {
                         10.0 * shift
                     };
-                    for (d, &p) in diagonal.iter().enumerate() {
+                    for (d, &p) in self.diagonal.iter().enumerate() {
                         if !prescribed[d] {
                             values[p] += next - shift;
                         }
@@ -552,9 +715,7 @@ impl Hyperelastic {
                 }
             }
         }
-        Err(StepFailure::Factorization(
-            "no shift made the tangent positive definite".into(),
-        ))
+        unreachable!("the last attempt returns")
     }
 
     fn apply(&self, u: &mut [[f64; 3]], direction: &[f64], length: f64) {
@@ -572,7 +733,7 @@ impl Hyperelastic {
         body: f64,
         energy: f64,
         slope: f64,
-        stats: &mut SolveStats,
+        work: &mut Work,
     ) -> Result<f64, StepFailure> {
         let base = u.to_vec();
         let mut length = 1.0;
@@ -581,10 +742,10 @@ impl Hyperelastic {
         for _ in 0..12 {
             u.copy_from_slice(&base);
             self.apply(u, direction, length);
-            match self.energy(u, body) {
+            match timed(&mut work.profile.line_search, || self.energy(u, body)) {
                 Some(e) if e <= energy + 1e-4 * length * slope + tolerance => return Ok(length),
                 Some(_) => {}
-                None => stats.inverted_trials += 1,
+                None => work.stats.inverted_trials += 1,
             }
             length /= 2.0;
         }
