@@ -37,6 +37,11 @@ enum Command {
     Bench(cli::bench::BenchArgs),
     /// Generate a dataset: grasps from the paper's distribution p with finite-element ground truth.
     Datagen(cli::datagen::DatagenArgs),
+    /// Work with datasets.
+    Dataset {
+        #[command(subcommand)]
+        command: DatasetCommand,
+    },
     /// Evaluate a model on a dataset with the paper's DCM metric.
     Eval {
         #[command(flatten)]
@@ -54,6 +59,13 @@ enum Command {
         #[command(subcommand)]
         command: MeshCommand,
     },
+}
+
+#[derive(Subcommand)]
+enum DatasetCommand {
+    /// Check that directories made by `nak datagen --shard I/N` are every shard of one dataset,
+    /// each complete, and assemble them into the dataset an unsharded run makes.
+    Join(cli::dataset::JoinArgs),
 }
 
 #[derive(Subcommand)]
@@ -86,6 +98,9 @@ fn main() -> anyhow::Result<()> {
             let cache = args.cache_dir.clone().unwrap_or_else(cli::engine::default_cache_dir);
             cli::datagen::run(args, &mesh, cache)
         }
+        Command::Dataset {
+            command: DatasetCommand::Join(args),
+        } => cli::dataset::join(&args),
         Command::Eval { eval, mesh, models } => {
             let engine = models.engine(mesh, &eval.model)?;
             cli::eval::run(&eval, &engine)

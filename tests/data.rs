@@ -305,3 +305,93 @@ fn failed_nonlinear_samples_are_recorded_and_left_out_of_eval() {
         assert!(String::from_utf8_lossy(&eval.stdout).contains("left out"));
     }
 }
+
+/// Every file of a dataset directory, by name.
+fn files(dir: &Path) -> std::collections::BTreeMap<String, Vec<u8>> {
+    std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .map(|p| {
+            (
+                p.file_name().unwrap().to_string_lossy().into_owned(),
+                std::fs::read(&p).unwrap(),
+            )
+        })
+        .collect()
+}
+
+fn join(out: &Path, shards: &[&Path]) -> std::process::Output {
+    nak()
+        .args(["dataset", "join", "--out"])
+        .arg(out)
+        .args(shards)
+        .output()
+        .unwrap()
+}
+
+fn refused(output: &std::process::Output, words: &[&str]) {
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success(), "accepted; stderr {stderr}");
+    for w in words {
+        assert!(stderr.contains(w), "{w:?} missing from {stderr}");
+    }
+}
+
+#[test]
+fn shards_join_into_the_dataset_an_unsharded_run_makes() {
+    let dir = tempfile::tempdir().unwrap();
+    let cache = dir.path().join("cache");
+    let path = |name: &str| dir.path().join(name);
+    let nonlinear = ["--regime", "nonlinear"];
+    assert!(datagen_box(&path("whole"), &cache, &nonlinear).status.success());
+    for shard in ["0/2", "1/2"] {
+        let out = path(&format!("shard-{}", &shard[..1]));
+        let run = datagen_box(&out, &cache, &[&nonlinear[..], &["--shard", shard]].concat());
+        assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+        assert!(String::from_utf8_lossy(&run.stdout).contains(&format!("3 samples (shard {shard}")));
+        // A shard holds its own chunks only: chunk c belongs to shard c mod 2.
+        let index: usize = shard[..1].parse().unwrap();
+        assert!(dataset::chunk_paths(&out, index).1.is_file());
+        assert!(!dataset::chunk_paths(&out, 1 - index).1.exists());
+    }
+    let (first, second) = (path("shard-0"), path("shard-1"));
+    let joined = join(&path("joined"), &[&second, &first]);
+    assert!(joined.status.success(), "{}", String::from_utf8_lossy(&joined.stderr));
+    let (mut joined, mut whole) = (files(&path("joined")), files(&path("whole")));
+    let (joined_mesh, whole_mesh) = (joined.remove("mesh.safetensors"), whole.remove("mesh.safetensors"));
+    assert!(dataset::same_mesh_file(&joined_mesh.unwrap(), &whole_mesh.unwrap()));
+    assert_eq!(joined, whole);
+
+    // Resuming a shard under another shard number, or out of range.
+    refused(
+        &datagen_box(&first, &cache, &[&nonlinear[..], &["--shard", "1/2"]].concat()),
+        &["holds another dataset", "shard"],
+    );
+    for bad in ["2/2", "0/0", "1-2"] {
+        refused(&datagen_box(&path("bad"), &cache, &["--shard", bad]), &[bad]);
+    }
+    // Joining: a shard missing, given twice, of another dataset, incomplete, or a whole dataset.
+    refused(&join(&path("j1"), &[&first]), &["all 2 shards are needed"]);
+    refused(&join(&path("j2"), &[&first, &first]), &["given twice"]);
+    let other = path("other-settings");
+    let settings = ["--shard", "1/2", "--max-step-cuts", "5"];
+    assert!(
+        datagen_box(&other, &cache, &[&nonlinear[..], &settings].concat())
+            .status
+            .success()
+    );
+    refused(
+        &join(&path("j3"), &[&first, &other]),
+        &["another dataset", "\"max_step_cuts\":5", "\"max_step_cuts\":12"],
+    );
+    let linear = path("linear-shard");
+    assert!(datagen_box(&linear, &cache, &["--shard", "1/2"]).status.success());
+    refused(&join(&path("j4"), &[&first, &linear]), &["another dataset", "regime"]);
+    std::fs::remove_file(dataset::chunk_paths(&second, 1).1).unwrap();
+    refused(
+        &join(&path("j5"), &[&first, &second]),
+        &["incomplete", "[1]", "--shard 1/2"],
+    );
+    refused(&join(&path("j6"), &[&path("whole"), &first]), &["not a shard"]);
+    refused(&join(&path("whole"), &[&first, &second]), &["not empty"]);
+}

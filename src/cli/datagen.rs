@@ -3,8 +3,9 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
-use nak::data::dataset::{DatasetInfo, SPLIT_RULE};
+use nak::data::dataset::{DatasetInfo, SPLIT_RULE, SolverLimits};
 use nak::data::generate::{NonlinearTally, generate_linear, generate_nonlinear};
+use nak::data::shard::Shard;
 use nak::fem::GreenLinear;
 use nak::fem::nonlinear::NewtonOptions;
 use nak::fem::preload::Preloaded;
@@ -40,6 +41,10 @@ pub struct DatagenArgs {
     /// Nonlinear: load-step halvings allowed before a sample is recorded as failed.
     #[arg(long, default_value_t = NewtonOptions::default().max_step_cuts)]
     max_step_cuts: usize,
+    /// Make only shard I of N (0-based): the chunks c with c mod N = I, in a directory of its own
+    /// (--out); `nak dataset join` assembles the N shard directories into the whole dataset.
+    #[arg(long, value_name = "I/N")]
+    shard: Option<Shard>,
     /// Where the Green's functions and the gravity preload are cached [default: $XDG_CACHE_HOME/nak or ~/.cache/nak].
     #[arg(long)]
     pub cache_dir: Option<PathBuf>,
@@ -78,6 +83,11 @@ pub fn run(args: DatagenArgs, mesh: &TetMesh, cache: PathBuf) -> anyhow::Result<
         chunk_size: args.chunk_size.max(1),
         split_rule: SPLIT_RULE.into(),
         made_by: format!("nak {} datagen", env!("CARGO_PKG_VERSION")),
+        solver: matches!(args.regime, Regime::Nonlinear).then_some(SolverLimits {
+            max_newton_iterations: args.max_newton_iterations,
+            max_step_cuts: args.max_step_cuts,
+        }),
+        shard: args.shard,
     };
     let bar = indicatif::ProgressBar::new(0).with_style(
         indicatif::ProgressStyle::with_template("{msg} {bar:30} {pos}/{len} ({per_sec}, ETA {eta})")
@@ -126,13 +136,15 @@ pub fn run(args: DatagenArgs, mesh: &TetMesh, cache: PathBuf) -> anyhow::Result<
     let new = generated
         .samples
         .saturating_sub(generated.chunks_skipped * info.chunk_size);
+    let part = match info.shard {
+        Some(shard) => format!(" (shard {shard} of a dataset of {} samples)", info.total()),
+        None => format!(" ({} single, {} multi)", info.single, info.multi),
+    };
     println!(
-        "{}: {} samples ({} single, {} multi) in {} chunks ({} resumed); {:.1} s, {:.1} samples/s",
+        "{}: {} samples{part} in {} chunks ({} resumed); {:.1} s, {:.1} samples/s",
         args.out.display(),
         generated.samples,
-        info.single,
-        info.multi,
-        info.chunks(),
+        generated.chunks_written + generated.chunks_skipped,
         generated.chunks_skipped,
         seconds,
         new as f64 / seconds.max(1e-9),

@@ -1,6 +1,7 @@
 pub mod bench;
 pub mod connect;
 pub mod datagen;
+pub mod dataset;
 pub mod engine;
 pub mod eval;
 pub mod mesh_info;

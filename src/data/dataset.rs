@@ -14,6 +14,7 @@ use std::path::{Path, PathBuf};
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 use serde::{Deserialize, Serialize};
 
+use super::shard::Shard;
 use super::{GraspSampler, SamplingError};
 use crate::engine::Grasp;
 use crate::fem::nonlinear::SolveStats;
@@ -62,6 +63,38 @@ pub struct DatasetInfo {
     /// How samples are assigned to splits (see [`split_of`]).
     pub split_rule: String,
     pub made_by: String,
+    /// Limits the nonlinear solver ran with (absent in linear datasets).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub solver: Option<SolverLimits>,
+    /// Which shard of the dataset this directory holds (absent in a whole or joined dataset).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub shard: Option<Shard>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct SolverLimits {
+    pub max_newton_iterations: usize,
+    pub max_step_cuts: usize,
+}
+
+/// The fields in which two datasets' descriptions differ (`a` first), for refusals.
+pub fn differences(a: &DatasetInfo, b: &DatasetInfo) -> String {
+    let (a, b) = (
+        serde_json::to_value(a).unwrap_or_default(),
+        serde_json::to_value(b).unwrap_or_default(),
+    );
+    let (Some(a), Some(b)) = (a.as_object(), b.as_object()) else {
+        return String::new();
+    };
+    let mut keys: Vec<&String> = a.keys().chain(b.keys()).collect();
+    keys.sort();
+    keys.dedup();
+    let show = |v: Option<&serde_json::Value>| v.map_or("absent".to_owned(), ToString::to_string);
+    keys.into_iter()
+        .filter(|k| a.get(*k) != b.get(*k))
+        .map(|k| format!("{k} {} against {}", show(a.get(k)), show(b.get(k))))
+        .collect::<Vec<_>>()
+        .join("; ")
 }
 
 impl DatasetInfo {
@@ -278,6 +311,23 @@ pub fn write_mesh(dir: &Path, mesh: &TetMesh) -> Result<(), DatasetError> {
     .collect();
     let bytes = safetensors::serialize(views, Some(metadata)).map_err(|e| format(&path, e))?;
     std::fs::write(&path, bytes).map_err(io(&path))
+}
+
+/// Whether two `mesh.safetensors` hold the same tensors and metadata. Their bytes may differ: the
+/// metadata is a hash map whose order changes from process to process.
+pub fn same_mesh_file(a: &[u8], b: &[u8]) -> bool {
+    let contents = |bytes| {
+        let (_, metadata) = SafeTensors::read_metadata(bytes).ok()?;
+        let tensors = SafeTensors::deserialize(bytes).ok()?;
+        let mut views: Vec<_> = tensors
+            .tensors()
+            .into_iter()
+            .map(|(name, view)| (name, view.dtype(), view.shape().to_vec(), view.data().to_vec()))
+            .collect();
+        views.sort_by(|x, y| x.0.cmp(&y.0));
+        Some((metadata.metadata().clone(), views))
+    };
+    matches!((contents(a), contents(b)), (Some(x), Some(y)) if x == y)
 }
 
 /// The samples of one complete chunk and their fields ([N, 3] each).

@@ -169,7 +169,7 @@ pub fn generate_nonlinear(
 }
 
 /// The chunked, resumable driver both regimes share: draws each chunk's samples from (seed, index),
-/// solves them in parallel over cores with `solve`, writes the chunk.
+/// solves them in parallel over cores with `solve`, writes the chunk. A shard does its chunks only.
 fn generate(
     mesh: &TetMesh,
     info: &DatasetInfo,
@@ -182,21 +182,26 @@ fn generate(
     {
         return Err(DatasetError::Format {
             path: dir.join("dataset.json").display().to_string(),
-            message: format!("holds another dataset ({existing:?}); choose another --out to make {info:?}"),
+            message: format!(
+                "holds another dataset ({}); resume it with its own arguments or choose another --out",
+                dataset::differences(&existing, info)
+            ),
         });
     }
     dataset::write_info(dir, info)?;
     dataset::write_mesh(dir, mesh)?;
     let sampler = GraspSampler::from_mesh(mesh)?;
     let complete = dataset::complete_chunks(dir, info.chunks());
-    let total = info.total();
+    let range_of = |chunk: usize| chunk * info.chunk_size..((chunk + 1) * info.chunk_size).min(info.total());
+    let owned = |chunk: &usize| info.shard.is_none_or(|shard| shard.owns(*chunk));
+    let total = (0..info.chunks()).filter(owned).map(|c| range_of(c).len()).sum();
     let done = AtomicUsize::new(0);
     let mut result = Generated {
         samples: total,
         ..Generated::default()
     };
-    for (chunk, is_complete) in complete.into_iter().enumerate() {
-        let range = chunk * info.chunk_size..((chunk + 1) * info.chunk_size).min(total);
+    for (chunk, is_complete) in complete.into_iter().enumerate().filter(|(c, _)| owned(c)) {
+        let range = range_of(chunk);
         if is_complete {
             result.chunks_skipped += 1;
             done.fetch_add(range.len(), Ordering::Relaxed);

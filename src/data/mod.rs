@@ -6,5 +6,6 @@ pub mod dcm;
 pub mod force_error;
 pub mod generate;
 pub mod sampling;
+pub mod shard;
 
 pub use sampling::{GraspSampler, SamplingError};

@@ -32,8 +32,10 @@ pub enum Krylov {
     Converged(usize),
     /// Ran out of iterations: the factor no longer describes the matrix well enough.
     Stalled,
-    /// pᵀAp ≤ 0: the matrix is not positive definite, so CG does not apply.
-    NegativeCurvature,
+    /// pᵀAp ≤ 0 after this many iterations: the matrix is not positive definite. The solution
+    /// holds the last iterate, or the preconditioned right-hand side if there was none: a
+    /// direction along which xᵀ·rhs > 0 (truncated CG, as in Steihaug's trust-region Newton).
+    NegativeCurvature(usize),
 }
 
 impl TangentFactor {
@@ -86,7 +88,8 @@ impl TangentFactor {
     }
 
     /// Solves `matrix · x = rhs` to ‖rhs − matrix·x‖ ≤ `tolerance`·‖rhs‖ by conjugate gradients
-    /// preconditioned with this factor, starting from x = 0. `matrix` must hold both triangles.
+    /// preconditioned with this factor, starting from x = 0. `matrix` must hold both triangles. The
+    /// factor must be of a positive definite matrix; `matrix` need not be (see [`Krylov`]).
     pub fn conjugate_gradients(
         &mut self,
         matrix: SparseColMatRef<'_, usize, f64>,
@@ -118,7 +121,10 @@ impl TangentFactor {
             );
             let curvature = dot(&p, &ap);
             if curvature <= 0.0 || !curvature.is_finite() {
-                return Krylov::NegativeCurvature;
+                if iteration == 1 {
+                    x.copy_from_slice(&z);
+                }
+                return Krylov::NegativeCurvature(iteration - 1);
             }
             let alpha = rz / curvature;
             for i in 0..n {

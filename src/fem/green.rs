@@ -267,7 +267,7 @@ fn compute(
         path: dir.display().to_string(),
         source,
     })?;
-    let tmp = path.with_extension("partial");
+    let tmp = super::cache_temporary(path);
     let io = |source| FemError::Io {
         path: tmp.display().to_string(),
         source,

@@ -12,7 +12,16 @@ pub mod preload;
 pub use green::{GreenLinear, GreenLinearModel};
 pub use linear::{DofMap, LinearSystem, nodal_forces, solve_dirichlet};
 
+use std::path::{Path, PathBuf};
+
 use crate::mesh::{Material, TetMesh};
+
+/// Where a cache file is written before it is renamed into place: beside it, under a name of this
+/// writer's own, so that processes sharing a cache (dataset shards on one volume) never write into
+/// each other's half-written file; whichever renames last wins, with the same content.
+fn cache_temporary(path: &Path) -> PathBuf {
+    path.with_extension(format!("partial-{:016x}", rand::random::<u64>()))
+}
 
 /// Each region's material from model.toml, in region order.
 pub fn region_materials(mesh: &TetMesh) -> Result<Vec<&Material>, FemError> {

@@ -164,8 +164,6 @@ struct Work {
     refactor: bool,
     /// The diagonal shift the last indefinite tangent needed.
     last_shift: f64,
-    /// The factor is of a shifted tangent: it preconditions nothing but itself.
-    factor_shifted: bool,
 }
 
 /// Runs `f` and adds its wall time to `slot`.
@@ -426,7 +424,6 @@ impl Hyperelastic {
             tangent: vec![0.0; self.pattern.row_idx().len()],
             refactor: false,
             last_shift: 0.0,
-            factor_shifted: false,
         };
         let mut u = load.start.to_vec();
         let mut prescribed = vec![false; self.dofs.len()];
@@ -641,8 +638,11 @@ impl Hyperelastic {
         }
     }
 
-    /// Solves the constrained tangent system: by conjugate gradients against the factor of an
-    /// earlier tangent when one is at hand and they converge, else by factorizing this tangent.
+    /// Solves the constrained tangent system by conjugate gradients against the factor of an
+    /// earlier tangent when one is at hand, else by factorizing this tangent. Where the tangent is
+    /// not positive definite (compressed or buckling tissue far from equilibrium), CG stops at the
+    /// negative curvature with a descent direction (truncated Newton), which costs far less than
+    /// factorizing a shifted tangent; a factor that has grown stale is renewed.
     fn direction(
         &self,
         values: &mut [f64],
@@ -651,21 +651,26 @@ impl Hyperelastic {
         work: &mut Work,
     ) -> Result<Vec<f64>, StepFailure> {
         let mut x = vec![0.0; rhs.len()];
-        if self.options.reuse_factorization && work.factor.is_valid() && !work.refactor && !work.factor_shifted {
+        if self.options.reuse_factorization && work.factor.is_valid() && !work.refactor {
             let matrix = SparseColMatRef::new(self.pattern.as_ref(), values);
             let factor = &mut work.factor;
             let outcome = timed(&mut work.profile.linear_solve, || {
                 factor.conjugate_gradients(matrix, rhs, &mut x, KRYLOV_TOLERANCE, MAX_KRYLOV_ITERATIONS)
             });
             tracing::debug!(?outcome, "conjugate gradients against an earlier factor");
-            match outcome {
-                Krylov::Converged(iterations) => {
-                    work.stats.krylov_iterations += iterations;
-                    work.refactor = iterations > REFACTOR_AFTER;
-                    return Ok(x);
+            let iterations = match outcome {
+                Krylov::Converged(iterations) | Krylov::NegativeCurvature(iterations) => Some(iterations),
+                Krylov::Stalled => None,
+            };
+            work.stats.krylov_iterations += iterations.unwrap_or(MAX_KRYLOV_ITERATIONS);
+            if let Some(iterations) = iterations {
+                work.refactor = iterations > REFACTOR_AFTER;
+                // Prescribed rows are identity rows decoupled from the rest: their exact
+                // value is the right-hand side, which an inexact solve only approaches.
+                for (d, _) in prescribed.iter().enumerate().filter(|(_, held)| **held) {
+                    x[d] = rhs[d];
                 }
-                Krylov::Stalled => work.stats.krylov_iterations += MAX_KRYLOV_ITERATIONS,
-                Krylov::NegativeCurvature => {}
+                return Ok(x);
             }
         }
         self.factorize(values, prescribed, work)?;
@@ -690,8 +695,7 @@ impl Hyperelastic {
             let factor = &mut work.factor;
             match timed(&mut work.profile.factorization, || factor.factorize(matrix)) {
                 Ok(()) => {
-                    work.factor_shifted = shift > 0.0;
-                    if work.factor_shifted {
+                    if shift > 0.0 {
                         work.last_shift = shift;
                     }
                     return Ok(());

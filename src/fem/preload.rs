@@ -134,7 +134,7 @@ fn write(path: &Path, mesh: &TetMesh, key: &str, rest: &[[f64; 3]]) -> Result<()
     bytes.extend_from_slice(key.as_bytes());
     bytes.extend_from_slice(bytemuck::cast_slice(rest));
     // Written aside and renamed, so a reader never sees half a file.
-    let tmp = path.with_extension("partial");
+    let tmp = super::cache_temporary(path);
     std::fs::write(&tmp, bytes).map_err(io(&tmp))?;
     std::fs::rename(&tmp, path).map_err(io(path))
 }
