@@ -1,6 +1,7 @@
 """The Kubernetes manifests in docker/k8s: valid against Kubernetes' own schemas (offline, strict), and
 consistent with the binary they run: every flag the Deployment passes is one `nak serve` takes, and the
-probes ask the port that serves health checks."""
+probes ask the port that serves health checks; the dataset Jobs pass flags `nak datagen` takes, run
+one shard per completion index of as many as the Job completes, and the join reads where they write."""
 
 from __future__ import annotations
 
@@ -15,15 +16,25 @@ import yaml
 
 from conftest import ROOT
 
-MANIFESTS = sorted(p for p in (ROOT / "docker" / "k8s").glob("*.yaml") if p.name != "kustomization.yaml")
+K8S = ROOT / "docker" / "k8s"
+MANIFESTS = sorted(p for p in K8S.glob("*.yaml") if p.name != "kustomization.yaml")
+DATAGEN = sorted((K8S / "datagen").glob("*.yaml"))
 
 
 def load(name: str) -> dict[str, Any]:
-    document: dict[str, Any] = yaml.safe_load((ROOT / "docker" / "k8s" / name).read_text())
+    document: dict[str, Any] = yaml.safe_load((K8S / name).read_text())
     return document
 
 
-@pytest.mark.parametrize("path", MANIFESTS, ids=lambda p: p.name)
+def help_flags(nak_binary: Path, command: str) -> str:
+    return subprocess.run([str(nak_binary), command, "--help"], capture_output=True, text=True, check=True).stdout
+
+
+def takes(help_text: str, flag: str) -> bool:
+    return re.search(rf"^\s+{re.escape(flag)}\b", help_text, re.MULTILINE) is not None
+
+
+@pytest.mark.parametrize("path", MANIFESTS + DATAGEN, ids=lambda p: p.name)
 def test_manifests_are_valid_kubernetes(path: Path) -> None:
     for document in yaml.safe_load_all(path.read_text()):
         kubernetes_validate.validate(document, kubernetes_validate.latest_version(), strict=True)
@@ -37,9 +48,9 @@ def test_the_deployment_runs_flags_nak_serve_takes_and_probes_its_health_port(na
     container = load("deployment.yaml")["spec"]["template"]["spec"]["containers"][0]
     args: list[str] = container["args"]
     assert args[0] == "serve"
-    help_text = subprocess.run([str(nak_binary), "serve", "--help"], capture_output=True, text=True, check=True).stdout
+    help_text = help_flags(nak_binary, "serve")
     for flag in (a.split("=")[0] for a in args[1:]):
-        assert re.search(rf"^\s+{re.escape(flag)}\b", help_text, re.MULTILINE), f"nak serve has no {flag}"
+        assert takes(help_text, flag), f"nak serve has no {flag}"
     ports = {p["name"]: p["containerPort"] for p in container["ports"]}
     listen = {a.split("=")[0]: int(a.rsplit(":", 1)[1]) for a in args if a.startswith("--") and "listen" in a}
     assert listen == {
@@ -51,3 +62,33 @@ def test_the_deployment_runs_flags_nak_serve_takes_and_probes_its_health_port(na
         assert container[probe]["grpc"]["port"] == ports["health"], probe
     service = load("service.yaml")["spec"]
     assert service["clusterIP"] == "None", "headless, so that clients balance per request"
+
+
+@pytest.mark.parametrize("name", ["datagen/nonlinear.yaml", "datagen/linear.yaml"])
+def test_a_dataset_job_runs_one_shard_per_completion_index(nak_binary: Path, name: str) -> None:
+    job = load(name)["spec"]
+    assert job["completionMode"] == "Indexed"
+    assert job["parallelism"] <= job["completions"]
+    container = job["template"]["spec"]["containers"][0]
+    shard_env = next(e for e in container["env"] if e["name"] == "SHARD")
+    assert "job-completion-index" in shard_env["valueFrom"]["fieldRef"]["fieldPath"]
+    args: list[str] = container["args"]
+    assert args[0] == "datagen"
+    help_text = help_flags(nak_binary, "datagen")
+    options = dict(a.split("=", 1) for a in args[1:])
+    for flag in options:
+        assert takes(help_text, flag), f"nak datagen has no {flag}"
+    assert options["--shard"] == f"$(SHARD)/{job['completions']}"
+    # Each shard writes a directory of its own under <dataset>/shards, which the join reads.
+    dataset = options["--out"].removeprefix("/data/").split("/")[0]
+    assert options["--out"] == f"/data/{dataset}/shards/$(SHARD)"
+    assert dataset == f"{options['--regime']}-{options['--preset']}"
+    join = load("datagen/join.yaml")["spec"]["template"]["spec"]["containers"][0]
+    assert '/data/"$DATASET"/shards/*' in join["args"][0]
+    assert takes(help_flags(nak_binary, "dataset"), "join")
+    volumes = {
+        v["persistentVolumeClaim"]["claimName"]
+        for f in (name, "datagen/join.yaml")
+        for v in load(f)["spec"]["template"]["spec"]["volumes"]
+    }
+    assert volumes == {load("datagen/volume.yaml")["metadata"]["name"]}
