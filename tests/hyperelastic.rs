@@ -34,6 +34,22 @@ fn solve_without_gravity(m: &TetMesh, prescribed: &[(u32, [f64; 3])]) -> (Hypere
     (solver, result)
 }
 
+/// Pulls the `grasp_01` face of `m` by `pull` from the reference configuration while gravity loads.
+fn pull_under_gravity(m: &TetMesh, pull: [f64; 3], options: NewtonOptions) -> (Vec<(u32, [f64; 3])>, Equilibrium) {
+    let prescribed: Vec<(u32, [f64; 3])> = m.node_sets["grasp_01"].iter().map(|&n| (n, pull)).collect();
+    let start = vec![[0.0; 3]; m.node_count()];
+    let result = Hyperelastic::new(m, true, options)
+        .unwrap()
+        .solve(Load {
+            start: &start,
+            prescribed: &prescribed,
+            body_from: 0.0,
+            body_to: 1.0,
+        })
+        .unwrap();
+    (prescribed, result)
+}
+
 fn liver() -> MooneyRivlin {
     MooneyRivlin::new(1620.0, 1970.0, 0.45)
 }
@@ -237,18 +253,7 @@ fn a_cube_in_uniaxial_stretch_carries_the_analytic_mooney_rivlin_stress() {
 #[test]
 fn newton_decreases_the_energy_and_converges_under_gravity_and_a_large_grasp() {
     let m = mesh(&Fixture::bar([6, 2, 2], [0.01; 3]));
-    let solver = Hyperelastic::new(&m, true, NewtonOptions::default()).unwrap();
-    let start = vec![[0.0; 3]; m.node_count()];
-    let pull = [0.02, 0.03, -0.015];
-    let prescribed: Vec<(u32, [f64; 3])> = m.node_sets["grasp_01"].iter().map(|&n| (n, pull)).collect();
-    let result = solver
-        .solve(Load {
-            start: &start,
-            prescribed: &prescribed,
-            body_from: 0.0,
-            body_to: 1.0,
-        })
-        .unwrap();
+    let (prescribed, result) = pull_under_gravity(&m, [0.02, 0.03, -0.015], NewtonOptions::default());
     assert!(result.stats.newton_iterations >= 2);
     let mut checked = 0;
     for step in 0..result.stats.load_steps + result.stats.step_cuts {
@@ -294,23 +299,12 @@ fn inverting_trial_steps_are_cut_and_the_solve_still_converges() {
 #[test]
 fn corrections_from_an_earlier_factor_reach_the_same_equilibrium_with_fewer_factorizations() {
     let m = mesh(&Fixture::bar([8, 3, 3], [0.01; 3]));
-    let pull = [0.03, 0.04, -0.02];
-    let prescribed: Vec<(u32, [f64; 3])> = m.node_sets["grasp_01"].iter().map(|&n| (n, pull)).collect();
-    let start = vec![[0.0; 3]; m.node_count()];
     let solve = |reuse_factorization| {
         let options = NewtonOptions {
             reuse_factorization,
             ..NewtonOptions::default()
         };
-        Hyperelastic::new(&m, true, options)
-            .unwrap()
-            .solve(Load {
-                start: &start,
-                prescribed: &prescribed,
-                body_from: 0.0,
-                body_to: 1.0,
-            })
-            .unwrap()
+        pull_under_gravity(&m, [0.03, 0.04, -0.02], options).1
     };
     let (reused, exact) = (solve(true), solve(false));
     assert!(reused.stats.krylov_iterations > 0, "{:?}", reused.stats);
@@ -339,18 +333,7 @@ fn corrections_from_an_earlier_factor_reach_the_same_equilibrium_with_fewer_fact
 fn bar_under_gravity_and_pull(h: f64) -> ([f64; 3], [f64; 3]) {
     let cells = |length: f64| (length / h).round() as usize;
     let m = mesh(&Fixture::bar([cells(0.06), cells(0.02), cells(0.02)], [h; 3]));
-    let pull = [0.010, 0.015, -0.005];
-    let prescribed: Vec<(u32, [f64; 3])> = m.node_sets["grasp_01"].iter().map(|&n| (n, pull)).collect();
-    let start = vec![[0.0; 3]; m.node_count()];
-    let result = Hyperelastic::new(&m, true, NewtonOptions::default())
-        .unwrap()
-        .solve(Load {
-            start: &start,
-            prescribed: &prescribed,
-            body_from: 0.0,
-            body_to: 1.0,
-        })
-        .unwrap();
+    let (_, result) = pull_under_gravity(&m, [0.010, 0.015, -0.005], NewtonOptions::default());
     let probe = (0..m.node_count())
         .find(|&n| {
             let p = m.positions[n];

@@ -193,7 +193,12 @@ pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
         info.regime,
         args.split
     );
-    if incomplete > 0 {
+    if let Some(shard) = info.shard {
+        println!(
+            "  shard {shard} of the dataset: its {} complete chunks only (nak dataset join assembles the whole)",
+            info.chunks() - incomplete
+        );
+    } else if incomplete > 0 {
         println!(
             "  {incomplete} of {} chunks are not generated yet and were left out (nak datagen resumes them)",
             info.chunks()

@@ -146,6 +146,13 @@ def test_bad_input_is_refused_naming_the_file_or_key(coarse_data: Path, tmp_path
     with pytest.raises(TrainingInputError, match=r"mesh.safetensors: mesh phantom-liver .* is not the dataset's"):
         open_dataset(other)
 
+    shard = tmp_path / "shard"
+    shutil.copytree(coarse_data, shard)
+    described = json.loads((shard / "dataset.json").read_text())
+    (shard / "dataset.json").write_text(json.dumps({**described, "shard": {"index": 1, "count": 4}}))
+    with pytest.raises(TrainingInputError, match=r"holds shard 1/4 of a dataset, not the whole: join"):
+        open_dataset(shard)
+
 
 def test_an_interrupted_run_resumes_to_the_same_weights(coarse_data: Path, tmp_path: Path) -> None:
     dataset = open_dataset(coarse_data)

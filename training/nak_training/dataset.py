@@ -158,6 +158,13 @@ def open_dataset(root: Path) -> Dataset:
     for key in ("mesh_name", "mesh_hash", "node_count", "regime", "seed", "single", "multi", "chunk_size"):
         if key not in info:
             raise TrainingInputError(root / "dataset.json", f"missing key {key!r}: not a nak dataset")
+    if "shard" in info:
+        shard = info["shard"]
+        raise TrainingInputError(
+            root / "dataset.json",
+            f"holds shard {shard['index']}/{shard['count']} of a dataset, not the whole: "
+            "join the shards with `nak dataset join --out DIR SHARD_DIR...`",
+        )
     mesh = read_mesh(root / "mesh.safetensors")
     if mesh.content_hash != info["mesh_hash"] or mesh.node_count != int(info["node_count"]):
         raise TrainingInputError(
