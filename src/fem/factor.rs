@@ -2,9 +2,10 @@
 //! as long as the solve, and conjugate gradients preconditioned by the factor of an earlier
 //! tangent, so that most Newton iterations need no factorization at all.
 //!
-//! A supernodal factorization of the phantom's tangent (29k unknowns) costs about as much as a
-//! hundred conjugate-gradient iterations preconditioned by it; within one grasp the tangent changes
-//! slowly enough that an old factor brings a new system to the solver's accuracy in a handful.
+//! Within one grasp the tangent changes slowly enough that an old factor brings a new system to the
+//! solver's accuracy in a handful of iterations. A factor that only preconditions is kept in f32:
+//! CG runs against the f64 tangent, so the answer is as exact, while the factorization and the
+//! (memory-bound) triangular solves move half the bytes.
 
 use std::sync::Arc;
 
@@ -15,14 +16,63 @@ use faer::sparse::linalg::cholesky::{LltRef, SymbolicCholesky};
 use faer::sparse::linalg::matmul::sparse_dense_matmul;
 use faer::{Accum, Conj, MatMut, MatRef, Par, Side};
 
-/// A Cholesky factor of one tangent, refreshed in place.
-pub struct TangentFactor {
+/// The precision a factor is stored in.
+pub trait Precision: faer::traits::ComplexField + Copy + Default + 'static {
+    fn narrow(value: f64) -> Self;
+    fn widen(self) -> f64;
+}
+
+impl Precision for f64 {
+    fn narrow(value: f64) -> Self {
+        value
+    }
+    fn widen(self) -> f64 {
+        self
+    }
+}
+
+impl Precision for f32 {
+    fn narrow(value: f64) -> Self {
+        value as f32
+    }
+    fn widen(self) -> f64 {
+        f64::from(self)
+    }
+}
+
+/// A Cholesky factor of one tangent, refreshed in place, stored in precision `T`.
+pub struct TangentFactor<T: Precision> {
     symbolic: Arc<SymbolicCholesky<usize>>,
+    /// The factorized matrix's values in `T`.
+    matrix: Vec<T>,
     /// L's values; empty until the first factorization.
-    values: Vec<f64>,
+    values: Vec<T>,
+    /// A right-hand side in `T`.
+    vector: Vec<T>,
     scratch: MemBuffer,
     /// Whether `values` holds a complete factor.
     valid: bool,
+}
+
+/// What the Newton solver asks of a factor, whatever its precision.
+pub trait Factor {
+    /// Whether a factor is at hand (from this matrix or an earlier one of the same pattern).
+    fn is_valid(&self) -> bool;
+    /// Factorizes the lower triangle of `matrix`; on failure the factor is invalid.
+    fn factorize(&mut self, matrix: SparseColMatRef<'_, usize, f64>) -> Result<(), LltError>;
+    /// x ← A⁻¹ x with the factored A.
+    fn solve_in_place(&mut self, x: &mut [f64]);
+    /// Solves `matrix · x = rhs` to ‖rhs − matrix·x‖ ≤ `tolerance`·‖rhs‖ by conjugate gradients
+    /// preconditioned with this factor, starting from x = 0. `matrix` must hold both triangles. The
+    /// factor must be of a positive definite matrix; `matrix` need not be (see [`Krylov`]).
+    fn conjugate_gradients(
+        &mut self,
+        matrix: SparseColMatRef<'_, usize, f64>,
+        rhs: &[f64],
+        x: &mut [f64],
+        tolerance: f64,
+        max_iterations: usize,
+    ) -> Krylov;
 }
 
 /// How a preconditioned conjugate-gradient solve ended.
@@ -38,33 +88,37 @@ pub enum Krylov {
     NegativeCurvature(usize),
 }
 
-impl TangentFactor {
+impl<T: Precision> TangentFactor<T> {
     pub fn new(symbolic: Arc<SymbolicCholesky<usize>>) -> Self {
         let par = Par::Seq;
         let scratch = MemBuffer::new(StackReq::any_of(&[
-            symbolic.factorize_numeric_llt_scratch::<f64>(par, Default::default()),
-            symbolic.solve_in_place_scratch::<f64>(1, par),
+            symbolic.factorize_numeric_llt_scratch::<T>(par, Default::default()),
+            symbolic.solve_in_place_scratch::<T>(1, par),
         ]));
         Self {
             symbolic,
+            matrix: Vec::new(),
             values: Vec::new(),
+            vector: Vec::new(),
             scratch,
             valid: false,
         }
     }
+}
 
-    /// Whether a factor is at hand (from this matrix or an earlier one of the same pattern).
-    pub fn is_valid(&self) -> bool {
+impl<T: Precision> Factor for TangentFactor<T> {
+    fn is_valid(&self) -> bool {
         self.valid
     }
 
-    /// Factorizes the lower triangle of `matrix`; on failure the factor is invalid.
-    pub fn factorize(&mut self, matrix: SparseColMatRef<'_, usize, f64>) -> Result<(), LltError> {
+    fn factorize(&mut self, matrix: SparseColMatRef<'_, usize, f64>) -> Result<(), LltError> {
         self.valid = false;
-        self.values.resize(self.symbolic.len_val(), 0.0);
+        self.matrix.clear();
+        self.matrix.extend(matrix.val().iter().map(|&v| T::narrow(v)));
+        self.values.resize(self.symbolic.len_val(), T::default());
         self.symbolic.factorize_numeric_llt(
             &mut self.values,
-            matrix,
+            SparseColMatRef::new(matrix.symbolic(), &self.matrix),
             Side::Lower,
             Default::default(),
             Par::Seq,
@@ -75,22 +129,23 @@ impl TangentFactor {
         Ok(())
     }
 
-    /// x ← A⁻¹ x with the factored A.
-    pub fn solve_in_place(&mut self, x: &mut [f64]) {
+    fn solve_in_place(&mut self, x: &mut [f64]) {
         debug_assert!(self.valid, "solve with no factor");
         let n = x.len();
+        self.vector.clear();
+        self.vector.extend(x.iter().map(|&v| T::narrow(v)));
         LltRef::new(&self.symbolic, &self.values).solve_in_place_with_conj(
             Conj::No,
-            MatMut::from_column_major_slice_mut(x, n, 1),
+            MatMut::from_column_major_slice_mut(&mut self.vector, n, 1),
             Par::Seq,
             MemStack::new(&mut self.scratch),
         );
+        for (x, v) in x.iter_mut().zip(&self.vector) {
+            *x = v.widen();
+        }
     }
 
-    /// Solves `matrix · x = rhs` to ‖rhs − matrix·x‖ ≤ `tolerance`·‖rhs‖ by conjugate gradients
-    /// preconditioned with this factor, starting from x = 0. `matrix` must hold both triangles. The
-    /// factor must be of a positive definite matrix; `matrix` need not be (see [`Krylov`]).
-    pub fn conjugate_gradients(
+    fn conjugate_gradients(
         &mut self,
         matrix: SparseColMatRef<'_, usize, f64>,
         rhs: &[f64],

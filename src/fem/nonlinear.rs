@@ -18,7 +18,7 @@ use nalgebra::Matrix3;
 use serde::{Deserialize, Serialize};
 
 use super::FemError;
-use super::factor::{Krylov, TangentFactor};
+use super::factor::{Factor, Krylov, TangentFactor};
 use super::hyperelastic::{MooneyRivlin, Tangent};
 use super::linear::{DofMap, shape_gradients};
 use super::ordering::nested_dissection;
@@ -157,7 +157,8 @@ struct Work {
     stats: SolveStats,
     profile: SolveProfile,
     trace: Vec<Iteration>,
-    factor: TangentFactor,
+    /// f32 where the factor preconditions CG, f64 where it solves exactly.
+    factor: Box<dyn Factor>,
     /// The tangent's CSC values, reassembled each iteration.
     tangent: Vec<f64>,
     /// The factor has grown stale: factorize at the next correction.
@@ -420,7 +421,11 @@ impl Hyperelastic {
             stats: SolveStats::default(),
             profile: SolveProfile::default(),
             trace: Vec::new(),
-            factor: TangentFactor::new(self.symbolic.clone()),
+            factor: if self.options.reuse_factorization {
+                Box::new(TangentFactor::<f32>::new(self.symbolic.clone()))
+            } else {
+                Box::new(TangentFactor::<f64>::new(self.symbolic.clone()))
+            },
             tangent: vec![0.0; self.pattern.row_idx().len()],
             refactor: false,
             last_shift: 0.0,
@@ -639,10 +644,11 @@ impl Hyperelastic {
     }
 
     /// Solves the constrained tangent system by conjugate gradients against the factor of an
-    /// earlier tangent when one is at hand, else by factorizing this tangent. Where the tangent is
-    /// not positive definite (compressed or buckling tissue far from equilibrium), CG stops at the
-    /// negative curvature with a descent direction (truncated Newton), which costs far less than
-    /// factorizing a shifted tangent; a factor that has grown stale is renewed.
+    /// earlier tangent, factorizing this one first when there is none or it has grown stale. Where
+    /// the tangent is not positive definite (compressed or buckling tissue far from equilibrium), CG
+    /// stops at the negative curvature with a descent direction (truncated Newton), which costs far
+    /// less than factorizing a shifted tangent. Without reuse, each tangent is factorized in f64 and
+    /// solved exactly.
     fn direction(
         &self,
         values: &mut [f64],
@@ -650,34 +656,48 @@ impl Hyperelastic {
         rhs: &[f64],
         work: &mut Work,
     ) -> Result<Vec<f64>, StepFailure> {
-        let mut x = vec![0.0; rhs.len()];
-        if self.options.reuse_factorization && work.factor.is_valid() && !work.refactor {
-            let matrix = SparseColMatRef::new(self.pattern.as_ref(), values);
+        let mut x = rhs.to_vec();
+        if !self.options.reuse_factorization {
+            self.factorize(values, prescribed, work)?;
             let factor = &mut work.factor;
-            let outcome = timed(&mut work.profile.linear_solve, || {
-                factor.conjugate_gradients(matrix, rhs, &mut x, KRYLOV_TOLERANCE, MAX_KRYLOV_ITERATIONS)
-            });
-            tracing::debug!(?outcome, "conjugate gradients against an earlier factor");
-            let iterations = match outcome {
-                Krylov::Converged(iterations) | Krylov::NegativeCurvature(iterations) => Some(iterations),
-                Krylov::Stalled => None,
-            };
-            work.stats.krylov_iterations += iterations.unwrap_or(MAX_KRYLOV_ITERATIONS);
-            if let Some(iterations) = iterations {
-                work.refactor = iterations > REFACTOR_AFTER;
-                // Prescribed rows are identity rows decoupled from the rest: their exact
-                // value is the right-hand side, which an inexact solve only approaches.
-                for (d, _) in prescribed.iter().enumerate().filter(|(_, held)| **held) {
-                    x[d] = rhs[d];
-                }
-                return Ok(x);
+            timed(&mut work.profile.linear_solve, || factor.solve_in_place(&mut x));
+            return Ok(x);
+        }
+        let fresh = !work.factor.is_valid() || work.refactor;
+        if fresh {
+            self.factorize(values, prescribed, work)?;
+            work.refactor = false;
+        }
+        let matrix = SparseColMatRef::new(self.pattern.as_ref(), values);
+        let factor = &mut work.factor;
+        let outcome = timed(&mut work.profile.linear_solve, || {
+            factor.conjugate_gradients(matrix, rhs, &mut x, KRYLOV_TOLERANCE, MAX_KRYLOV_ITERATIONS)
+        });
+        tracing::debug!(?outcome, fresh, "conjugate gradients");
+        match outcome {
+            Krylov::Converged(iterations) | Krylov::NegativeCurvature(iterations) => {
+                work.stats.krylov_iterations += iterations;
+                work.refactor = !fresh && iterations > REFACTOR_AFTER;
+            }
+            Krylov::Stalled if fresh => {
+                // Even this tangent's own (f32, possibly shifted) factor leaves CG short: its
+                // preconditioned right-hand side is still a descent direction.
+                work.stats.krylov_iterations += MAX_KRYLOV_ITERATIONS;
+                x.copy_from_slice(rhs);
+                let factor = &mut work.factor;
+                timed(&mut work.profile.linear_solve, || factor.solve_in_place(&mut x));
+            }
+            Krylov::Stalled => {
+                work.stats.krylov_iterations += MAX_KRYLOV_ITERATIONS;
+                work.refactor = true;
+                return self.direction(values, prescribed, rhs, work);
             }
         }
-        self.factorize(values, prescribed, work)?;
-        work.refactor = false;
-        x.copy_from_slice(rhs);
-        let factor = &mut work.factor;
-        timed(&mut work.profile.linear_solve, || factor.solve_in_place(&mut x));
+        // Prescribed rows are identity rows decoupled from the rest: their exact value is the
+        // right-hand side, which an inexact solve only approaches.
+        for (d, _) in prescribed.iter().enumerate().filter(|(_, held)| **held) {
+            x[d] = rhs[d];
+        }
         Ok(x)
     }
 
