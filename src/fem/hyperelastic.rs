@@ -43,26 +43,34 @@ impl MooneyRivlin {
             return None;
         }
         let (i1, i2) = invariants(&(f.transpose() * f));
-        Some(
-            self.c10 * (j.powf(-2.0 / 3.0) * i1 - 3.0)
-                + self.c01 * (j.powf(-4.0 / 3.0) * i2 - 3.0)
-                + 0.5 * self.kappa * (j - 1.0).powi(2),
-        )
+        Some(self.energy_of(j, i1, i2))
+    }
+
+    fn energy_of(&self, j: f64, i1: f64, i2: f64) -> f64 {
+        self.c10 * (j.powf(-2.0 / 3.0) * i1 - 3.0)
+            + self.c01 * (j.powf(-4.0 / 3.0) * i2 - 3.0)
+            + 0.5 * self.kappa * (j - 1.0).powi(2)
     }
 
     /// The first Piola–Kirchhoff stress; `None` when J ≤ 0.
     pub fn stress(&self, f: &Matrix3<f64>) -> Option<Matrix3<f64>> {
-        self.evaluate(f, false).map(|(p, _)| p)
+        self.evaluate(f, false).map(|(_, p, _)| p)
     }
 
     /// Stress and tangent together (they share most of the work); `None` when J ≤ 0.
     pub fn stress_and_tangent(&self, f: &Matrix3<f64>) -> Option<(Matrix3<f64>, Tangent)> {
-        self.evaluate(f, true).map(|(p, a)| (p, a.unwrap_or([[0.0; 9]; 9])))
+        self.evaluate(f, true).map(|(_, p, a)| (p, a.unwrap_or([[0.0; 9]; 9])))
+    }
+
+    /// Energy density, stress and, if asked, the tangent in one pass (an element loop needs all
+    /// three, and they share the determinant, invariants and powers of J); `None` when J ≤ 0.
+    pub fn response(&self, f: &Matrix3<f64>, with_tangent: bool) -> Option<(f64, Matrix3<f64>, Option<Tangent>)> {
+        self.evaluate(f, with_tangent)
     }
 
     /// Each term is `c J^a g(F)` with g ∈ {I1, I2}; its derivatives follow from the product rule with
     /// `∂J^a/∂F = a J^a F⁻ᵀ` and `∂F⁻ᵀ_iJ/∂F_kL = −F⁻ᵀ_iL F⁻ᵀ_kJ`.
-    fn evaluate(&self, f: &Matrix3<f64>, with_tangent: bool) -> Option<(Matrix3<f64>, Option<Tangent>)> {
+    fn evaluate(&self, f: &Matrix3<f64>, with_tangent: bool) -> Option<(f64, Matrix3<f64>, Option<Tangent>)> {
         let j = f.determinant();
         if j <= 0.0 {
             return None;
@@ -82,15 +90,20 @@ impl MooneyRivlin {
         for &(scale, a, g, dg) in &terms {
             p += scale * (dg + a * g * finv_t);
         }
+        let energy = self.energy_of(j, i1, i2);
         if !with_tangent {
-            return Some((p, None));
+            return Some((energy, p, None));
         }
         let delta = |x: usize, y: usize| if x == y { 1.0 } else { 0.0 };
         let mut t = [[0.0; 9]; 9];
+        // A is a Hessian (∂²W/∂F∂F), hence symmetric: the upper triangle is computed and mirrored.
         for i in 0..3 {
             for jj in 0..3 {
                 for k in 0..3 {
                     for l in 0..3 {
+                        if 3 * k + l < 3 * i + jj {
+                            continue;
+                        }
                         let inv_outer = finv_t[(i, jj)] * finv_t[(k, l)];
                         let inv_derivative = -finv_t[(i, l)] * finv_t[(k, jj)];
                         let dd_i1 = 2.0 * delta(i, k) * delta(jj, l);
@@ -105,11 +118,12 @@ impl MooneyRivlin {
                                     + a * g * inv_derivative);
                         }
                         t[3 * i + jj][3 * k + l] = value;
+                        t[3 * k + l][3 * i + jj] = value;
                     }
                 }
             }
         }
-        Some((p, Some(t)))
+        Some((energy, p, Some(t)))
     }
 }
 

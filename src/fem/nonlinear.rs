@@ -396,15 +396,11 @@ impl Hyperelastic {
             let law = &self.laws[self.tet_law[t] as usize];
             let f = self.deformation_gradient(t, u);
             let (g, v) = (&self.gradients[t], self.volumes[t]);
-            strain += v * law.energy(&f)?;
-            let p = match tangent {
-                Some(ref mut values) => {
-                    let (p, a) = law.stress_and_tangent(&f)?;
-                    scatter_element_tangent(&a, g, v, &self.scatter[t], values);
-                    p
-                }
-                None => law.stress(&f)?,
-            };
+            let (energy, p, a) = law.response(&f, tangent.is_some())?;
+            strain += v * energy;
+            if let (Some(values), Some(a)) = (tangent.as_deref_mut(), a) {
+                scatter_element_tangent(&a, g, v, &self.scatter[t], values);
+            }
             for (a, &n) in self.tets[t].iter().enumerate() {
                 for i in 0..3 {
                     forces[n as usize][i] += v * (0..3).map(|j| p[(i, j)] * g[a][j]).sum::<f64>();
@@ -799,12 +795,21 @@ fn scatter_element_tangent(a: &Tangent, g: &[Vec3; 4], volume: f64, scatter: &[u
             }
         }
     }
-    for (e, &slot) in scatter.iter().enumerate() {
-        if slot == u32::MAX {
-            continue;
+    // The element matrix is symmetric (A is): each entry of the upper triangle goes to both places.
+    for row in 0..12 {
+        for col in row..12 {
+            let (upper, lower) = (scatter[12 * row + col], scatter[12 * col + row]);
+            if upper == u32::MAX && lower == u32::MAX {
+                continue;
+            }
+            let (na, i, nb, k) = (row / 3, row % 3, col / 3, col % 3);
+            let value = volume * (0..3).map(|l| m[na][i][k][l] * g[nb][l]).sum::<f64>();
+            if upper != u32::MAX {
+                values[upper as usize] += value;
+            }
+            if lower != u32::MAX && row != col {
+                values[lower as usize] += value;
+            }
         }
-        let (row, col) = (e / 12, e % 12);
-        let (na, i, nb, k) = (row / 3, row % 3, col / 3, col % 3);
-        values[slot as usize] += volume * (0..3).map(|l| m[na][i][k][l] * g[nb][l]).sum::<f64>();
     }
 }
