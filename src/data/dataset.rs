@@ -36,14 +36,14 @@ pub enum DatasetError {
     Solver(String),
 }
 
-fn io(path: &Path) -> impl Fn(std::io::Error) -> DatasetError + '_ {
+pub(crate) fn io(path: &Path) -> impl Fn(std::io::Error) -> DatasetError + '_ {
     move |source| DatasetError::Io {
         path: path.display().to_string(),
         source,
     }
 }
 
-fn format(path: &Path, message: impl std::fmt::Display) -> DatasetError {
+pub(crate) fn format(path: &Path, message: impl std::fmt::Display) -> DatasetError {
     DatasetError::Format {
         path: path.display().to_string(),
         message: message.to_string(),

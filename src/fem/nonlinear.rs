@@ -704,8 +704,8 @@ impl Hyperelastic {
     fn factorize(&self, values: &mut [f64], prescribed: &[bool], work: &mut Work) -> Result<(), StepFailure> {
         let mean_diagonal =
             self.diagonal.iter().map(|&p| values[p].abs()).sum::<f64>() / self.diagonal.len().max(1) as f64;
-        let mut shift = 0.0;
-        for attempt in 0..=MAX_SHIFTS {
+        let (mut shift, mut attempt) = (0.0, 0);
+        loop {
             let matrix = SparseColMatRef::new(self.pattern.as_ref(), values);
             work.stats.factorizations += 1;
             let factor = &mut work.factor;
@@ -734,8 +734,8 @@ impl Hyperelastic {
                     shift = next;
                 }
             }
+            attempt += 1;
         }
-        unreachable!("the last attempt returns")
     }
 
     fn apply(&self, u: &mut [[f64; 3]], direction: &[f64], length: f64) {
