@@ -35,6 +35,10 @@ pub struct ServeArgs {
     /// the kubelet's [default: off; health is always on the main port too].
     #[arg(long, value_name = "ADDR")]
     health_listen: Option<SocketAddr>,
+    /// Serve the viewer at http://ADDR/: the organ in 3D, grasped with the mouse, deforming live
+    /// (plain HTTP, gRPC-Web to the same service; a port of its own) [default: off].
+    #[arg(long, value_name = "ADDR")]
+    ui: Option<SocketAddr>,
     /// TLS: the server's certificate chain (PEM); with --tls-key.
     #[arg(long, value_name = "PEM")]
     tls_cert: Option<PathBuf>,
@@ -120,6 +124,7 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
         options.auth_token = auth_token;
         options.metrics = bind(config.metrics_listen, "metrics").await?;
         options.health = bind(config.health_listen, "health checks").await?;
+        options.ui = bind(config.ui, "viewer").await?;
         serve::run(engine, listener, options, serve::shutdown_signal()).await?;
         if let Some(recorder) = recorder {
             recorder.close().context("the recording was not finished cleanly")?;
@@ -151,6 +156,7 @@ fn serve_config(args: ServeArgs) -> anyhow::Result<ServeConfig> {
     config.listen = args.listen.unwrap_or(config.listen);
     config.metrics_listen = args.metrics_listen.or(config.metrics_listen);
     config.health_listen = args.health_listen.or(config.health_listen);
+    config.ui = args.ui.or(config.ui);
     config.tls_cert = args.tls_cert.or(config.tls_cert);
     config.tls_key = args.tls_key.or(config.tls_key);
     config.tls_client_ca = args.tls_client_ca.or(config.tls_client_ca);

@@ -7,6 +7,7 @@ mod priority;
 pub mod security;
 mod service;
 mod status_codes;
+pub mod ui;
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -54,6 +55,8 @@ pub struct ServeConfig {
     pub metrics_listen: Option<SocketAddr>,
     /// Serve grpc.health.v1 alone, without TLS, on this address (for the kubelet's gRPC probes).
     pub health_listen: Option<SocketAddr>,
+    /// Serve the browser viewer (and gRPC-Web for it) at `http://ADDR/`.
+    pub ui: Option<SocketAddr>,
     /// TLS: the server's certificate chain and private key (PEM).
     pub tls_cert: Option<PathBuf>,
     pub tls_key: Option<PathBuf>,
@@ -97,6 +100,7 @@ impl Default for ServeConfig {
             listen: SocketAddr::from(([127, 0, 0, 1], 50051)),
             metrics_listen: None,
             health_listen: None,
+            ui: None,
             tls_cert: None,
             tls_key: None,
             tls_client_ca: None,
@@ -197,6 +201,8 @@ pub struct Options {
     pub metrics: Option<TcpListener>,
     /// A plain-HTTP/2 port with grpc.health.v1 alone, for probes that speak no TLS (the kubelet's).
     pub health: Option<TcpListener>,
+    /// Where the browser viewer and its gRPC-Web access are served, if anywhere.
+    pub ui: Option<TcpListener>,
     /// TLS on the gRPC port; `None`: plain HTTP/2.
     pub tls: Option<ServerTlsConfig>,
     /// The bearer token callers must present (health checks excepted).
@@ -211,6 +217,7 @@ impl Options {
             recorder: None,
             metrics: None,
             health: None,
+            ui: None,
             tls: None,
             auth_token: None,
         }
@@ -229,6 +236,7 @@ pub async fn run(
         recorder,
         metrics: metrics_listener,
         health: health_listener,
+        ui: ui_listener,
         tls,
         auth_token,
     } = options;
@@ -265,6 +273,13 @@ pub async fn run(
             .add_service(health_service.clone())
             .serve_with_incoming_shutdown(TcpIncoming::from(listener), on_stop(&stopped));
         tokio::spawn(log_failure("the health port", served));
+    }
+    if let Some(listener) = ui_listener {
+        // The viewer's port is plain HTTP/1.1: browsers speak gRPC-Web only over what they can fetch.
+        warn_if_exposed(&listener, false, auth_token.is_some());
+        info!(address = ?listener.local_addr().ok(), "viewer at http://ADDR/");
+        let served = ui::serve(deformation.clone(), listener, on_stop(&stopped));
+        tokio::spawn(log_failure("the viewer", served));
     }
     info!(
         max_in_flight = intake.max_in_flight,

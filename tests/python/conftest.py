@@ -30,23 +30,33 @@ def nak_binary() -> Path:
 @contextmanager
 def start_server(nak_binary: Path, extra_args: list[str]) -> Iterator[str]:
     """`nak serve` at a free loopback port with `extra_args`; yields host:port, stops it with SIGTERM."""
+    with start_server_ports(nak_binary, extra_args, []) as addresses:
+        yield addresses["listening"]
+
+
+@contextmanager
+def start_server_ports(nak_binary: Path, extra_args: list[str], side_ports: list[str]) -> Iterator[dict[str, str]]:
+    """`nak serve` as in `start_server`, waiting also for the side ports it logs (e.g. "viewer listening");
+    yields each log message's address, "listening" being the gRPC port."""
     proc = subprocess.Popen(
         [str(nak_binary), "serve", "--listen", "127.0.0.1:0", "--log-format", "json", *extra_args],
         stderr=subprocess.PIPE,
         text=True,
     )
     assert proc.stderr is not None
-    address = None
+    wanted = {"listening", *side_ports}
+    addresses: dict[str, str] = {}
     for line in proc.stderr:
-        record = json.loads(line)
-        if record["fields"].get("message") == "listening":
-            address = record["fields"]["address"]
-            break
-    if address is None:
+        fields = json.loads(line)["fields"]
+        if fields.get("message") in wanted:
+            addresses[fields["message"]] = fields["address"]
+            if wanted <= addresses.keys():
+                break
+    if not wanted <= addresses.keys():
         proc.kill()
-        pytest.fail("nak serve exited before listening")
+        pytest.fail(f"nak serve exited before logging {sorted(wanted - addresses.keys())}")
     try:
-        yield address
+        yield addresses
     finally:
         proc.terminate()
         proc.wait(timeout=10)
