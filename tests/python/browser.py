@@ -10,6 +10,7 @@ import itertools
 import json
 import os
 import shutil
+import signal
 import subprocess
 import tempfile
 from contextlib import ExitStack
@@ -59,13 +60,22 @@ class Browser:
             ],
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
+            # Chromium forks a GPU process and renderers that outlive their parent: its own
+            # process group lets __exit__ stop them all.
+            start_new_session=True,
         )
         self._ids = itertools.count(1)
         self._resources = ExitStack()
-        self._socket: ClientConnection = self._resources.enter_context(
-            connect(self._page_socket(), max_size=None, open_timeout=30)
-        )
-        self.call("Emulation.setDeviceMetricsOverride", width=width, height=height, deviceScaleFactor=1, mobile=False)
+        try:
+            self._socket: ClientConnection = self._resources.enter_context(
+                connect(self._page_socket(), max_size=None, open_timeout=30)
+            )
+            self.call(
+                "Emulation.setDeviceMetricsOverride", width=width, height=height, deviceScaleFactor=1, mobile=False
+            )
+        except BaseException:
+            self._stop()
+            raise
 
     def _page_socket(self) -> str:
         """The page's DevTools WebSocket, once Chromium has written its port."""
@@ -86,9 +96,22 @@ class Browser:
     def __exit__(
         self, kind: type[BaseException] | None, error: BaseException | None, trace: TracebackType | None
     ) -> None:
+        self._stop()
+
+    def _stop(self) -> None:
+        """Closes the connection and stops every process of the browser's group before its profile
+        directory goes (a renderer still writing there would make the removal fail)."""
         self._resources.close()
-        self._process.terminate()
+        group = self._process.pid
+        os.killpg(group, signal.SIGTERM)
         self._process.wait(timeout=10)
+        deadline = time.monotonic() + 10
+        while True:
+            try:
+                os.killpg(group, signal.SIGKILL if time.monotonic() > deadline else 0)
+            except ProcessLookupError:
+                break
+            time.sleep(0.05)
         self._profile.cleanup()
 
     def send(self, method: str, **params: Any) -> int:

@@ -31,6 +31,7 @@ uniform vec3 colormap[5];
 uniform float scaleMax;
 uniform vec3 eyeDirection;
 uniform vec4 markerColor;
+uniform bool roundPoints;
 in vec3 vNormal;
 in float vMagnitude;
 out vec4 color;
@@ -41,6 +42,7 @@ vec3 viridis(float t) {
 }
 void main() {
   if (markerColor.a > 0.0) {
+    if (roundPoints && length(gl_PointCoord - 0.5) > 0.5) discard;
     color = markerColor;
     return;
   }
@@ -175,14 +177,19 @@ export class Surface {
   update(displacement) {
     if (displacement) this.displacement.set(displacement);
     else this.displacement.fill(0);
+    // Runs for every answer shown: plain indexed arithmetic, no temporary arrays.
+    const { rest, displacement: u, position } = this;
     let largest = 0;
     for (let i = 0; i < this.count; i++) {
-      const [x, y, z] = this.displacement.subarray(3 * i, 3 * i + 3);
-      this.position[3 * i] = this.rest[3 * i] + x;
-      this.position[3 * i + 1] = this.rest[3 * i + 1] + y;
-      this.position[3 * i + 2] = this.rest[3 * i + 2] + z;
-      this.magnitude[i] = Math.hypot(x, y, z);
-      largest = Math.max(largest, this.magnitude[i]);
+      const x = u[3 * i];
+      const y = u[3 * i + 1];
+      const z = u[3 * i + 2];
+      position[3 * i] = rest[3 * i] + x;
+      position[3 * i + 1] = rest[3 * i + 1] + y;
+      position[3 * i + 2] = rest[3 * i + 2] + z;
+      const magnitude = Math.sqrt(x * x + y * y + z * z);
+      this.magnitude[i] = magnitude;
+      if (magnitude > largest) largest = magnitude;
     }
     this.largest = largest;
     this.computeNormals();
@@ -194,14 +201,23 @@ export class Surface {
     n.fill(0);
     const t = this.triangles;
     for (let k = 0; k < t.length; k += 3) {
-      const [a, b, c] = [3 * t[k], 3 * t[k + 1], 3 * t[k + 2]];
-      const e1 = [p[b] - p[a], p[b + 1] - p[a + 1], p[b + 2] - p[a + 2]];
-      const e2 = [p[c] - p[a], p[c + 1] - p[a + 1], p[c + 2] - p[a + 2]];
-      const f = cross(e1, e2);
+      const a = 3 * t[k];
+      const b = 3 * t[k + 1];
+      const c = 3 * t[k + 2];
+      const e1x = p[b] - p[a];
+      const e1y = p[b + 1] - p[a + 1];
+      const e1z = p[b + 2] - p[a + 2];
+      const e2x = p[c] - p[a];
+      const e2y = p[c + 1] - p[a + 1];
+      const e2z = p[c + 2] - p[a + 2];
+      // e1 × e2: the face normal scaled by twice its area.
+      const fx = e1y * e2z - e1z * e2y;
+      const fy = e1z * e2x - e1x * e2z;
+      const fz = e1x * e2y - e1y * e2x;
       for (const v of [a, b, c]) {
-        n[v] += f[0];
-        n[v + 1] += f[1];
-        n[v + 2] += f[2];
+        n[v] += fx;
+        n[v + 1] += fy;
+        n[v + 2] += fz;
       }
     }
   }
@@ -249,7 +265,7 @@ export class Renderer {
     this.surface = surface;
     this.program = link(gl, VERTEX_SHADER, FRAGMENT_SHADER);
     this.uniforms = {};
-    for (const name of ["viewProjection", "pointSize", "colormap", "scaleMax", "eyeDirection", "markerColor"]) {
+    for (const name of ["viewProjection", "pointSize", "colormap", "scaleMax", "eyeDirection", "markerColor", "roundPoints"]) {
       this.uniforms[name] = gl.getUniformLocation(this.program, name);
     }
     this.vao = gl.createVertexArray();
@@ -259,6 +275,13 @@ export class Renderer {
       normal: this.attribute("normal", 3),
       magnitude: this.attribute("magnitude", 1),
     };
+    // The graspers: a few points of their own, drawn over everything.
+    this.grasperVao = gl.createVertexArray();
+    gl.bindVertexArray(this.grasperVao);
+    this.grasperPositions = this.attribute("position", 3);
+    gl.vertexAttrib3f(gl.getAttribLocation(this.program, "normal"), 0, 0, 1);
+    gl.vertexAttrib1f(gl.getAttribLocation(this.program, "magnitude"), 0);
+    gl.bindVertexArray(this.vao);
     this.triangles = this.indices(surface.triangles);
     this.graspRegionPoints = this.indices(surface.graspRegionPoints);
     this.fixedPoints = this.indices(surface.fixedPoints);
@@ -317,7 +340,8 @@ export class Renderer {
       this.canvas.height = height;
     }
   }
-  draw(camera, scaleMax) {
+  // The surface and its markers, then `graspers` ({from, to, color}, world points) on top.
+  draw(camera, scaleMax, graspers) {
     const gl = this.gl;
     this.resize();
     gl.viewport(0, 0, this.canvas.width, this.canvas.height);
@@ -332,10 +356,35 @@ export class Renderer {
     this.drawElements(gl.TRIANGLES, this.triangles, 0, [0, 0, 0, 0]);
     this.drawElements(gl.POINTS, this.graspRegionPoints, 5, [1.0, 0.37, 0.84, 1]);
     this.drawElements(gl.POINTS, this.fixedPoints, 4, [0.56, 0.64, 0.75, 1]);
+    this.drawGraspers(graspers);
+  }
+  drawGraspers(graspers) {
+    const gl = this.gl;
+    if (!graspers.length) return;
+    gl.bindVertexArray(this.grasperVao);
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.grasperPositions);
+    gl.bufferData(gl.ARRAY_BUFFER, new Float32Array(graspers.flatMap((g) => [...g.from, ...g.to])), gl.DYNAMIC_DRAW);
+    gl.disable(gl.DEPTH_TEST);
+    graspers.forEach((g, i) => {
+      gl.uniform4fv(this.uniforms.markerColor, g.color);
+      this.setPoints(0);
+      gl.drawArrays(gl.LINES, 2 * i, 2);
+      this.setPoints(8);
+      gl.drawArrays(gl.POINTS, 2 * i, 1);
+      this.setPoints(14);
+      gl.drawArrays(gl.POINTS, 2 * i + 1, 1);
+    });
+    gl.enable(gl.DEPTH_TEST);
+    gl.bindVertexArray(this.vao);
+  }
+  // Points of `size` CSS pixels, drawn round; 0: not points (triangles, lines).
+  setPoints(size) {
+    this.gl.uniform1f(this.uniforms.pointSize, size * this.pixelRatio());
+    this.gl.uniform1i(this.uniforms.roundPoints, size > 0 ? 1 : 0);
   }
   drawElements(mode, indices, pointSize, markerColor) {
     const gl = this.gl;
-    gl.uniform1f(this.uniforms.pointSize, pointSize * this.pixelRatio());
+    this.setPoints(pointSize);
     gl.uniform4fv(this.uniforms.markerColor, markerColor);
     gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, indices.buffer);
     gl.drawElements(mode, indices.count, gl.UNSIGNED_INT, 0);

@@ -9,6 +9,7 @@ const $ = (id) => document.getElementById(id);
 const MM = 1e3;
 const HANDLE_PIXELS = 14;
 const RATE_WINDOW_MS = 1000;
+const READOUT_INTERVAL_MS = 250;
 
 const state = {
   ready: false,
@@ -20,8 +21,15 @@ const state = {
   sequence: 0,
   inFlight: false,
   dirty: false,
-  // Timestamps (ms) of applied answers, and [timestamp, round trip] (ms), for the readout and the test.
-  applied: [],
+  // The answer the next frame shows (undefined: nothing new; null: the organ at rest), and the one
+  // on screen, for the readout (refreshed at `readoutAt`, ms).
+  latest: undefined,
+  shown: null,
+  readoutAt: 0,
+  // Timestamps (ms) of answers received and of frames that showed a new one (answers arriving
+  // within one frame share it), and [timestamp, round trip] (ms), for the readout and the test.
+  received: [],
+  deformationFrames: [],
   roundTrips: [],
   framesDrawn: 0,
   drewLastFrame: false,
@@ -86,13 +94,14 @@ function release() {
 
 // ---- talking to the server ---------------------------------------------------------------------
 
+// The grasps changed: the next frame asks for their deformation.
 function requestUpdate() {
   state.dirty = true;
-  pump();
 }
 
-// Sends the latest grasps when nothing is in flight: a drag never queues stale requests, and the
-// update rate is what the server and the page can sustain.
+// Called once per frame: sends the latest grasps when nothing is in flight. A drag never queues
+// stale requests, and no more answers are asked for than frames can show (on a machine where the
+// browser and the server share the cores, every extra answer would slow the frames down).
 async function pump() {
   if (state.inFlight || !state.dirty) return;
   state.dirty = false;
@@ -109,13 +118,11 @@ async function pump() {
     const received = performance.now();
     note(state.roundTrips, [received, received - sent], 2000);
     show(answer);
-    readout(answer);
     setStatus(null);
   } catch (error) {
     setStatus(error.message);
   } finally {
     state.inFlight = false;
-    pump();
   }
 }
 
@@ -124,13 +131,20 @@ function note(list, value, keep) {
   if (list.length > keep) list.splice(0, list.length - keep);
 }
 
-// Applies an answer (null: the organ at rest).
+// Keeps an answer (null: the organ at rest) for the next frame to show. Answers can arrive faster
+// than frames are drawn; only the latest one before a frame is worth applying.
 function show(answer) {
+  note(state.received, performance.now(), 2000);
+  state.latest = answer;
+  state.needsDraw = true;
+}
+
+// Applies the latest answer to the surface; the readout shows it at its next refresh.
+function apply(answer) {
   surface.update(answer ? answer.displacements : null);
   renderer.upload();
-  note(state.applied, performance.now(), 2000);
   state.scaleMax = niceScale(surface.largest, state.scaleMax);
-  state.needsDraw = true;
+  if (answer) state.shown = answer;
 }
 
 // A round colour-scale maximum (1, 2 or 5 × 10^k m, at least 1 mm) that changes only when the field
@@ -142,25 +156,32 @@ function niceScale(largest, current) {
   return [1, 2, 5, 10].map((m) => m * power).find((v) => v >= target);
 }
 
-function readout(answer) {
+// Refreshes the readout from the answer on screen. Four times a second is as fast as anyone reads,
+// and every change repaints the panel, which a software compositor pays for in frames.
+function readout(now) {
+  if (now - state.readoutAt < READOUT_INTERVAL_MS) return;
+  state.readoutAt = now;
   const us = (v) => `${v.toFixed(0)} µs`;
+  const recent = (list) => list.filter((t) => now - t <= RATE_WINDOW_MS);
+  setText("rate", `${recent(state.deformationFrames).length} /s`);
+  setText("render-scale", `${Math.round(renderer.renderScale * 100)} %`);
+  setText("scale-max", `${(state.scaleMax * MM).toFixed(0)} mm`);
+  const answer = state.shown;
+  if (!answer) return;
   // The median of the last second's round trips: one answer's is mostly noise.
-  const now = performance.now();
-  const recent = state.roundTrips.filter(([t]) => now - t <= RATE_WINDOW_MS).map(([, ms]) => ms).sort((a, b) => a - b);
-  $("rtt").textContent = `${(recent[Math.floor(recent.length / 2)] * 1e3).toFixed(0)} µs`;
-  $("server-total").textContent = us(answer.timing.total);
-  $("server-resolve").textContent = us(answer.timing.resolve);
-  $("server-queue").textContent = us(answer.timing.queue);
-  $("server-prior").textContent = us(answer.timing.prior);
-  $("server-network").textContent = us(answer.timing.network);
-  $("held").textContent = String(answer.interactionPoints);
-  $("largest").textContent = `${(surface.largest * MM).toFixed(1)} mm`;
-  $("forces").textContent = answer.graspForces.length
-    ? answer.graspForces.map((f) => `${Math.hypot(...f).toFixed(2)} N`).join(", ")
-    : "–";
+  const trips = state.roundTrips.filter(([t]) => now - t <= RATE_WINDOW_MS).map(([, ms]) => ms).sort((a, b) => a - b);
+  if (trips.length) setText("rtt", us(trips[Math.floor(trips.length / 2)] * 1e3));
+  setText("server-total", us(answer.timing.total));
+  setText("server-resolve", us(answer.timing.resolve));
+  setText("server-queue", us(answer.timing.queue));
+  setText("server-prior", us(answer.timing.prior));
+  setText("server-network", us(answer.timing.network));
+  setText("held", String(answer.interactionPoints));
+  setText("largest", `${(surface.largest * MM).toFixed(1)} mm`);
+  setText("forces", answer.graspForces.length ? answer.graspForces.map((f) => `${Math.hypot(...f).toFixed(2)} N`).join(", ") : "–");
 }
 
-// Changes an element's text only when it differs: a DOM write every frame would relayout the panel.
+// Changes an element's text only when it differs: an unchanged value costs no repaint.
 function setText(id, value) {
   const element = $(id);
   if (element.textContent !== value) element.textContent = value;
@@ -248,66 +269,51 @@ function viewport() {
 
 function frame() {
   const now = performance.now();
-  const recent = state.applied.filter((t) => now - t <= RATE_WINDOW_MS).length;
-  setText("rate", `${recent} /s`);
-  setText("render-scale", `${Math.round(renderer.renderScale * 100)} %`);
+  pump();
+  readout(now);
   const drawing = state.needsDraw;
   if (drawing) {
     state.needsDraw = false;
+    const fresh = state.latest !== undefined;
+    if (fresh) {
+      apply(state.latest);
+      state.latest = undefined;
+      note(state.deformationFrames, now, 2000);
+    }
     renderer.timeFrame(now, state.drewLastFrame);
-    renderer.draw(camera, state.scaleMax);
-    drawGraspers();
-    $("scale-max").textContent = `${(state.scaleMax * MM).toFixed(0)} mm`;
+    renderer.draw(camera, state.scaleMax, graspers());
     state.framesDrawn++;
   }
   state.drewLastFrame = drawing;
   requestAnimationFrame(frame);
 }
 
-// Each grasper: a ring where it took hold, a dot where it is now, and the line between them.
-function drawGraspers() {
-  const overlay = $("overlay");
-  const { width, height } = viewport();
-  // Resizing a canvas reallocates it: only when the window changed.
-  if (overlay.width !== width || overlay.height !== height) {
-    overlay.width = width;
-    overlay.height = height;
-  }
-  const context = overlay.getContext("2d");
-  context.clearRect(0, 0, width, height);
-  context.lineWidth = 2;
-  state.graspers.forEach((g, i) => {
-    if (!g) return;
-    const from = camera.project(g.point, width, height);
-    const to = camera.project(add(g.point, g.displacement), width, height);
-    if (!from || !to) return;
-    context.strokeStyle = context.fillStyle = i === 0 ? "#ffffff" : "#ffb347";
-    context.beginPath();
-    context.arc(from[0], from[1], 5, 0, 2 * Math.PI);
-    context.moveTo(from[0], from[1]);
-    context.lineTo(to[0], to[1]);
-    context.stroke();
-    context.beginPath();
-    context.arc(to[0], to[1], 7, 0, 2 * Math.PI);
-    context.fill();
-  });
+const GRASPER_COLORS = [[1, 1, 1, 1], [1, 0.7, 0.28, 1]];
+
+// Each grasper: a small dot where it took hold, a large one where it is now, a line between them.
+function graspers() {
+  return state.graspers.flatMap((g, i) => (g ? [{ from: g.point, to: add(g.point, g.displacement), color: GRASPER_COLORS[i] }] : []));
 }
 
 // ---- for the browser test ----------------------------------------------------------------------
 
+// Events per second between the first and the last of `times` (ms) after `since`.
+function rate(times, since) {
+  const recent = times.filter((t) => t >= since);
+  return recent.length < 2 ? 0 : ((recent.length - 1) * 1000) / (recent[recent.length - 1] - recent[0]);
+}
+
 window.nakViewer = {
   get ready() { return state.ready; },
   get error() { return state.error; },
-  get busy() { return state.inFlight || state.dirty; },
-  get updates() { return state.applied.length; },
+  get busy() { return state.inFlight || state.dirty || state.latest !== undefined; },
+  get updates() { return state.deformationFrames.length; },
   get framesDrawn() { return state.framesDrawn; },
   get renderScale() { return renderer.renderScale; },
   get graspers() { return state.graspers.filter(Boolean).length; },
-  // Answers applied per second between the first and last of those applied after `since` (ms).
-  updateRate(since) {
-    const times = state.applied.filter((t) => t >= since);
-    return times.length < 2 ? 0 : ((times.length - 1) * 1000) / (times[times.length - 1] - times[0]);
-  },
+  // Answers received, and frames drawn with a new answer, per second after `since` (ms).
+  answerRate(since) { return rate(state.received, since); },
+  deformationFrameRate(since) { return rate(state.deformationFrames, since); },
   // Round trips (ms) of the answers received after `since` (ms).
   roundTripsMs(since) { return state.roundTrips.filter(([t]) => t >= since).map(([, ms]) => ms); },
   // Where grasper `i`'s dot is on screen (CSS pixels), or null.
