@@ -156,29 +156,31 @@ pub fn run(args: DatagenArgs, mesh: &TetMesh, cache: PathBuf) -> anyhow::Result<
     Ok(())
 }
 
-/// The solver's effort over the samples solved in this run, and where its time went.
+/// The solver's effort in this run: time per sample over every sample attempted (what a dataset
+/// costs), iterations and factorizations over the converged ones (a failed solve reports none).
 fn print_nonlinear_tally(t: &NonlinearTally) {
-    let per = |v: f64| v / t.solved.max(1) as f64;
+    let converged = t.attempted - t.failed;
+    let per_converged = |v: usize| v as f64 / converged.max(1) as f64;
     let mut seconds = t.solve_seconds.clone();
     seconds.sort_by(f64::total_cmp);
     let median = seconds.get(seconds.len() / 2).copied().unwrap_or(0.0);
+    let mean = seconds.iter().sum::<f64>() / t.attempted.max(1) as f64;
     println!(
-        "nonlinear: {} solved, per sample on one core {:.2} s median / {:.2} s mean, Newton iterations {:.1} mean / {} max, \
-         load steps {:.1} mean, factorizations {:.1} mean, conjugate-gradient iterations {:.1} mean, \
-         {} with step cuts ({:.1} %), {} with shifted tangents, {} failed ({:.1} %)",
-        t.solved,
-        median,
-        per(seconds.iter().sum()),
-        per(t.newton_iterations as f64),
-        t.max_newton_iterations,
-        per(t.load_steps as f64),
-        per(t.factorizations as f64),
-        per(t.krylov_iterations as f64),
-        t.cut,
-        100.0 * per(t.cut as f64),
-        t.shifted,
+        "nonlinear: {} samples, {} failed ({:.1} %); per sample on one core {:.2} s median / {:.2} s mean; \
+         per converged sample: Newton iterations {:.1} mean / {} max, load steps {:.1} mean, factorizations {:.1} \
+         mean, conjugate-gradient iterations {:.1} mean; {} with step cuts, {} with shifted tangents",
+        t.attempted,
         t.failed,
-        100.0 * per(t.failed as f64),
+        100.0 * t.failed as f64 / t.attempted.max(1) as f64,
+        median,
+        mean,
+        per_converged(t.newton_iterations),
+        t.max_newton_iterations,
+        per_converged(t.load_steps),
+        per_converged(t.factorizations),
+        per_converged(t.krylov_iterations),
+        t.cut,
+        t.shifted,
     );
     let p = &t.profile;
     let total: f64 = seconds.iter().sum::<f64>().max(1e-9);

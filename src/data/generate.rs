@@ -22,13 +22,14 @@ pub struct Generated {
     pub samples: usize,
     /// Linear: samples whose grasp reached past the precomputed Green's functions, solved directly.
     pub direct_solves: usize,
-    /// Nonlinear: solver effort summed over the samples solved, and how many needed step cuts or failed.
+    /// Nonlinear: solver effort summed over the samples attempted, and how many needed step cuts or failed.
     pub nonlinear: NonlinearTally,
 }
 
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct NonlinearTally {
-    pub solved: usize,
+    /// Samples whose solve ran in this run, converged or failed.
+    pub attempted: usize,
     pub newton_iterations: usize,
     pub load_steps: usize,
     pub cut: usize,
@@ -36,8 +37,8 @@ pub struct NonlinearTally {
     pub shifted: usize,
     pub factorizations: usize,
     pub krylov_iterations: usize,
-    /// Per-sample solve times (s), in the order the samples finished: their sum divided by
-    /// `solved` is the cost of one sample on one core.
+    /// Per-sample solve times (s), failed ones included, in the order the samples finished: their
+    /// sum divided by `attempted` is the cost of one sample on one core.
     pub solve_seconds: Vec<f64>,
     pub max_newton_iterations: usize,
     /// Where the solved samples' time went.
@@ -46,7 +47,7 @@ pub struct NonlinearTally {
 
 impl NonlinearTally {
     fn add(&mut self, stats: &SolveStats, profile: &SolveProfile, failed: bool, seconds: f64) {
-        self.solved += 1;
+        self.attempted += 1;
         self.factorizations += stats.factorizations;
         self.krylov_iterations += stats.krylov_iterations;
         self.profile.add(profile);
