@@ -162,14 +162,14 @@ function readout(now) {
   if (now - state.readoutAt < READOUT_INTERVAL_MS) return;
   state.readoutAt = now;
   const us = (v) => `${v.toFixed(0)} µs`;
-  const recent = (list) => list.filter((t) => now - t <= RATE_WINDOW_MS);
-  setText("rate", `${recent(state.deformationFrames).length} /s`);
+  const windowStart = now - RATE_WINDOW_MS;
+  setText("rate", `${state.deformationFrames.filter((t) => t >= windowStart).length} /s`);
   setText("render-scale", `${Math.round(renderer.renderScale * 100)} %`);
   setText("scale-max", `${(state.scaleMax * MM).toFixed(0)} mm`);
   const answer = state.shown;
   if (!answer) return;
   // The median of the last second's round trips: one answer's is mostly noise.
-  const trips = state.roundTrips.filter(([t]) => now - t <= RATE_WINDOW_MS).map(([, ms]) => ms).sort((a, b) => a - b);
+  const trips = roundTripsSince(windowStart).sort((a, b) => a - b);
   if (trips.length) setText("rtt", us(trips[Math.floor(trips.length / 2)] * 1e3));
   setText("server-total", us(answer.timing.total));
   setText("server-resolve", us(answer.timing.resolve));
@@ -297,6 +297,11 @@ function graspers() {
 
 // ---- for the browser test ----------------------------------------------------------------------
 
+// Round trips (ms) of the answers received after `since` (ms).
+function roundTripsSince(since) {
+  return state.roundTrips.filter(([t]) => t >= since).map(([, ms]) => ms);
+}
+
 // Events per second between the first and the last of `times` (ms) after `since`.
 function rate(times, since) {
   const recent = times.filter((t) => t >= since);
@@ -314,8 +319,7 @@ window.nakViewer = {
   // Answers received, and frames drawn with a new answer, per second after `since` (ms).
   answerRate(since) { return rate(state.received, since); },
   deformationFrameRate(since) { return rate(state.deformationFrames, since); },
-  // Round trips (ms) of the answers received after `since` (ms).
-  roundTripsMs(since) { return state.roundTrips.filter(([t]) => t >= since).map(([, ms]) => ms); },
+  roundTripsMs: roundTripsSince,
   // Where grasper `i`'s dot is on screen (CSS pixels), or null.
   handle(i) {
     const g = state.graspers[i];
