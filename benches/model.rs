@@ -29,14 +29,17 @@ fn models(c: &mut Criterion) {
     let mesh = Arc::new(mesh::load(&MeshSource::Embedded).expect("embedded phantom"));
     let mut engine = Engine::new(mesh.clone(), Limits::default());
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/models/phantom-liver");
-    for model in nak::model::load_all(&dir, &mesh, None).expect("test models (is ORT_DYLIB_PATH set?)") {
+    for model in nak::model::load_all(&dir, &mesh, nak::model::LoadContext::default())
+        .expect("test models (is ORT_DYLIB_PATH set?)")
+    {
         engine.add_model(Arc::new(model) as Arc<dyn DeformationModel>);
     }
     for name in SHIPPED_REDUCED {
         let shipped = Path::new(env!("CARGO_MANIFEST_DIR"))
             .join("models/phantom-liver")
             .join(name);
-        let reduced = nak::model::OnnxModel::load(&shipped, &mesh, None).expect("the shipped reduced networks");
+        let reduced = nak::model::OnnxModel::load(&shipped, &mesh, nak::model::LoadContext::default())
+            .expect("the shipped reduced networks");
         engine.add_model(Arc::new(reduced));
     }
     let request = |model: &str| Request {
@@ -50,7 +53,7 @@ fn models(c: &mut Criterion) {
     };
     let cache = Path::new(env!("CARGO_MANIFEST_DIR")).join("target/green-cache");
     let green = GreenLinear::load_or_compute(&mesh, &cache, |_, _| {}).expect("Green's functions");
-    engine.add_model(Arc::new(GreenLinearModel::new(&mesh, green)));
+    engine.add_model(Arc::new(GreenLinearModel::new(&mesh, Arc::new(green))));
     let mut group = c.benchmark_group("model");
     // green-linear at the paper's two-grasper size, K = 20.
     let two = Request {

@@ -90,7 +90,7 @@ fn engine() -> &'static Engine {
             ..Limits::default()
         };
         let mut engine = Engine::new(mesh.clone(), limits);
-        engine.add_model(Arc::new(GreenLinearModel::new(&mesh, green)));
+        engine.add_model(Arc::new(GreenLinearModel::new(&mesh, Arc::new(green))));
         engine
     })
 }

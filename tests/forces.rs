@@ -40,7 +40,7 @@ async fn each_model_answers_with_exact_estimated_or_no_forces_and_says_which() {
         .iter()
         .find(|n| !green.candidates().contains(n))
         .unwrap();
-    engine.add_model(Arc::new(GreenLinearModel::new(&mesh, green)));
+    engine.add_model(Arc::new(GreenLinearModel::new(&mesh, Arc::new(green))));
     let server = TestServer::with_engine(engine, 1 << 20).await;
     let mut client = server.client().await;
     let listed = client

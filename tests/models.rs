@@ -10,8 +10,9 @@ use common::models::{coarse, copy_model, engine_with_models, load_error, ort, pr
 use common::server::TestServer;
 use nak::engine::DeformationModel;
 use nak::engine::{Engine, Grasp, Limits, Request, Selection};
+use nak::fem::{GreenLinear, GreenLinearModel};
 use nak::mesh::PriorParams;
-use nak::model::{self, OnnxModel};
+use nak::model::{self, LoadContext, OnnxModel};
 use nak::prior::{InteractionPoints, Kelvinlet, NodeCloud, Workspace};
 use nak::proto::v1 as pb;
 use tonic::Code;
@@ -217,6 +218,55 @@ fn each_model_is_served_with_its_own_prior() {
             i / 3,
             at_3cm[i]
         );
+    }
+}
+
+#[test]
+fn a_model_on_the_green_linear_prior_serves_green_linear_plus_its_network() {
+    let mesh = coarse();
+    let cache = tempfile::tempdir().unwrap();
+    let green = Arc::new(GreenLinear::load_or_compute(&mesh, cache.path(), |_, _| {}).unwrap());
+    let mut engine = engine_with_models(mesh.clone());
+    engine.add_model(Arc::new(GreenLinearModel::new(&mesh, green.clone())));
+    let source = || Ok(green.clone());
+    let on_green = LoadContext {
+        ort_dylib: ort(),
+        green_linear: Some(&source),
+    };
+    let mut copies = Vec::new();
+    // Both serving paths: a features network (mlp) and an interaction network over a basis.
+    for name in ["mlp-residual", "reduced-residual"] {
+        let (root, dir) = copy_model(name);
+        let manifest = std::fs::read_to_string(dir.join("manifest.toml")).unwrap();
+        let renamed = manifest
+            .replace("[prior]\n", "[prior]\nmodel = \"green-linear\"\n")
+            .replace(&format!("name = \"{name}\""), &format!("name = \"{name}-gl\""));
+        std::fs::write(dir.join("manifest.toml"), renamed).unwrap();
+        let refused = load_error(&dir);
+        assert!(refused.contains("prior.model = \"green-linear\""), "{refused}");
+        let model = OnnxModel::load(&dir, &mesh, on_green).unwrap();
+        assert_eq!(model.info().metadata["prior.model"], "green-linear");
+        engine.add_model(Arc::new(model));
+        copies.push(root);
+    }
+    let some_nodes: Vec<u32> = (0..mesh.node_count() as u32).step_by(7).collect();
+    for selection in [Selection::All, Selection::List(some_nodes)] {
+        let green_field = predict(&engine, "green-linear", selection.clone());
+        let kelvinlet = predict(&engine, "kelvinlet", selection.clone());
+        let scale = green_field.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+        for name in ["mlp-residual", "reduced-residual"] {
+            // The network's share is the same whichever prior it is added to.
+            let on_kelvinlet = predict(&engine, name, selection.clone());
+            let on_green = predict(&engine, &format!("{name}-gl"), selection.clone());
+            for i in 0..on_green.len() {
+                let expected = green_field[i] + on_kelvinlet[i] - kelvinlet[i];
+                assert!(
+                    (on_green[i] - expected).abs() <= 1e-5 * scale,
+                    "{name}, value {i}: {} vs {expected}",
+                    on_green[i]
+                );
+            }
+        }
     }
 }
 

@@ -187,7 +187,7 @@ fn on_the_gpu_prior_and_residual_in_one_dispatch_equal_the_cpu_path() {
     assert!(choice.contains("GPU"), "{choice}");
     // A model added after the clouds went to the GPU uploads its basis too.
     let dir = test_models().join("phantom-liver-coarse/reduced-residual");
-    let late = Arc::new(OnnxModel::load(&dir, gpu.mesh(), None).unwrap());
+    let late = Arc::new(OnnxModel::load(&dir, gpu.mesh(), nak::model::LoadContext::default()).unwrap());
     assert!(!late.basis_on_gpu());
     gpu.add_model(late.clone());
     assert!(late.basis_on_gpu(), "the basis was not uploaded");

@@ -2,6 +2,7 @@
 //! shipped networks, every model directory (a model that cannot be loaded is refused, the others
 //! served), and green-linear when asked for.
 
+use std::cell::RefCell;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -9,6 +10,7 @@ use anyhow::Context;
 use nak::engine::{DeformationModel, Engine, RefusedModel};
 use nak::fem::{GreenLinear, GreenLinearModel};
 use nak::mesh::{self, MeshSource, TetMesh};
+use nak::model::LoadContext;
 use nak::prior::PriorBackend;
 use nak::serve::ServeConfig;
 use tracing::info;
@@ -64,11 +66,27 @@ pub fn build_engine(config: &ServeConfig) -> anyhow::Result<Engine> {
         .use_prior_backend(config.prior_backend)
         .context("cannot use the GPU prior (--prior-backend gpu); `auto` falls back to the CPU")?;
     info!("{choice}");
+    // Green's functions are made (or read from the cache) once, when the first model needs them: a
+    // network trained on the green-linear prior, or green-linear itself.
+    let green: RefCell<Option<Arc<GreenLinear>>> = RefCell::new(None);
+    let green_linear = || -> anyhow::Result<Arc<GreenLinear>> {
+        if let Some(green) = green.borrow().as_ref() {
+            return Ok(green.clone());
+        }
+        let made = Arc::new(load_green_linear(&mesh, config)?);
+        *green.borrow_mut() = Some(made.clone());
+        Ok(made)
+    };
+    let green_source = || green_linear().map_err(|e| format!("{e:#}"));
+    let context = LoadContext {
+        ort_dylib: config.ort_dylib.as_deref(),
+        green_linear: Some(&green_source),
+    };
     if config.mesh.is_none() {
-        load_shipped_models(&mut engine, &mesh, config.ort_dylib.as_deref())?;
+        load_shipped_models(&mut engine, &mesh, context)?;
     }
     for root in config.model_roots() {
-        let models = nak::model::load_each(&root, &mesh, config.ort_dylib.as_deref())
+        let models = nak::model::load_each(&root, &mesh, context)
             .with_context(|| format!("cannot load the models in {}", root.display()))?;
         for model in models {
             match model {
@@ -88,24 +106,24 @@ pub fn build_engine(config: &ServeConfig) -> anyhow::Result<Engine> {
         }
     }
     if config.green_linear {
-        engine.add_model(Arc::new(green_linear(&mesh, config)?));
+        engine.add_model(Arc::new(GreenLinearModel::new(&mesh, green_linear()?)));
     }
     Ok(engine)
 }
 
 /// The networks shipped with the embedded phantom. Without ONNX Runtime the server still starts and
 /// serves the prior, saying what it left out and how to get it.
-fn load_shipped_models(engine: &mut Engine, mesh: &TetMesh, ort_dylib: Option<&Path>) -> anyhow::Result<()> {
+fn load_shipped_models(engine: &mut Engine, mesh: &TetMesh, context: LoadContext<'_>) -> anyhow::Result<()> {
     let shipped = nak::model::shipped::SHIPPED;
     if shipped.is_empty() {
         return Ok(());
     }
-    if let Err(e) = nak::model::runtime::locate(ort_dylib) {
+    if let Err(e) = nak::model::runtime::locate(context.ort_dylib) {
         let names: Vec<&str> = shipped.iter().map(|m| m.name).collect();
         tracing::warn!("the shipped networks {names:?} are not served: {e}");
         return Ok(());
     }
-    for model in nak::model::shipped::load(mesh, ort_dylib).context("cannot load the shipped networks")? {
+    for model in nak::model::shipped::load(mesh, context).context("cannot load the shipped networks")? {
         info!(model = %model.info().name, "shipped model loaded and warmed up");
         engine.add_model(Arc::new(model));
     }
@@ -113,7 +131,7 @@ fn load_shipped_models(engine: &mut Engine, mesh: &TetMesh, ort_dylib: Option<&P
 }
 
 /// Loads green-linear's Green's functions from the cache, computing them with a progress bar first.
-fn green_linear(mesh: &TetMesh, config: &ServeConfig) -> anyhow::Result<GreenLinearModel> {
+fn load_green_linear(mesh: &TetMesh, config: &ServeConfig) -> anyhow::Result<GreenLinear> {
     let cache = config.cache_dir.clone().unwrap_or_else(default_cache_dir);
     let bar = indicatif::ProgressBar::new(0).with_style(
         indicatif::ProgressStyle::with_template("Green's functions {bar:30} {pos}/{len} columns, ETA {eta}")
@@ -126,7 +144,7 @@ fn green_linear(mesh: &TetMesh, config: &ServeConfig) -> anyhow::Result<GreenLin
     .with_context(|| format!("cannot prepare green-linear (cache {})", cache.display()))?;
     bar.finish_and_clear();
     info!(cache = %green.path.display(), candidates = green.candidates().len(), "green-linear ready");
-    Ok(GreenLinearModel::new(mesh, green))
+    Ok(green)
 }
 
 pub fn default_cache_dir() -> PathBuf {

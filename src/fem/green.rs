@@ -9,6 +9,7 @@
 use std::collections::{BTreeMap, HashMap};
 use std::io::Write;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::Instant;
 
 use faer::Mat;
@@ -298,13 +299,13 @@ fn compute(
 /// `green-linear` as a served model.
 pub struct GreenLinearModel {
     info: ModelInfo,
-    green: GreenLinear,
+    green: Arc<GreenLinear>,
 }
 
 impl GreenLinearModel {
     pub const NAME: &'static str = "green-linear";
 
-    pub fn new(mesh: &TetMesh, green: GreenLinear) -> Self {
+    pub fn new(mesh: &TetMesh, green: Arc<GreenLinear>) -> Self {
         let metadata = BTreeMap::from([
             (
                 "description".to_owned(),

@@ -7,6 +7,40 @@ use serde::Deserialize;
 use super::ModelLoadError;
 use crate::mesh::{PriorParams, TetMesh};
 
+/// The prior a model is composed with: added to a residual network's output, read by a network that
+/// takes the prior as input.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum PriorModel {
+    /// The regularized Kelvinlet with the manifest's parameters (DESIGN.md §3).
+    #[default]
+    Kelvinlet,
+    /// The exact linear FEM answer (green-linear); the Kelvinlet parameters are then unused.
+    GreenLinear,
+}
+
+/// `[prior]`: which prior, and the Kelvinlet's parameters (kept for every model: they are the
+/// regularizer's for +Reg, and the served prior's for Kelvinlet residuals).
+#[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PriorSection {
+    #[serde(default)]
+    pub model: PriorModel,
+    pub poisson_ratio: f64,
+    pub epsilon_m: f64,
+    pub lambda: f64,
+}
+
+impl PriorSection {
+    pub fn kelvinlet(&self) -> PriorParams {
+        PriorParams {
+            poisson_ratio: self.poisson_ratio,
+            epsilon: self.epsilon_m,
+            lambda: self.lambda,
+        }
+    }
+}
+
 /// How the served field is made from the network's output.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -66,7 +100,7 @@ impl Channel {
 pub struct Manifest {
     pub model: ModelSection,
     pub mesh: MeshSection,
-    pub prior: PriorParams,
+    pub prior: PriorSection,
     /// Measured on the test split (DCM per subset, …), reported by ListModels.
     #[serde(default)]
     pub metrics: BTreeMap<String, toml::Value>,
@@ -131,7 +165,7 @@ impl Manifest {
                 ),
             ));
         }
-        let prior = manifest.prior;
+        let prior = manifest.prior.kelvinlet();
         let valid = prior.poisson_ratio > 0.0
             && prior.poisson_ratio < 0.5
             && prior.epsilon > 0.0

@@ -3,17 +3,43 @@
 pub mod basis;
 pub mod manifest;
 pub mod onnx;
+pub mod prior;
 pub mod runtime;
 pub mod shipped;
 pub mod signature;
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 pub use basis::Basis;
-pub use manifest::{Channel, Manifest, Method, Mode};
+pub use manifest::{Channel, Manifest, Method, Mode, PriorModel};
 pub use onnx::{ModelFiles, OnnxModel};
+pub use prior::ModelPrior;
 
+use crate::fem::GreenLinear;
 use crate::mesh::TetMesh;
+
+/// Gives green-linear's Green's functions to the networks trained on that prior. Called only when
+/// such a network is loaded: computing them takes minutes on a new machine, and most servers need none.
+pub type GreenLinearSource<'a> = &'a dyn Fn() -> Result<Arc<GreenLinear>, String>;
+
+/// What loading a network may need from outside its directory.
+#[derive(Clone, Copy, Default)]
+pub struct LoadContext<'a> {
+    /// ONNX Runtime's shared library (`None`: $ORT_DYLIB_PATH).
+    pub ort_dylib: Option<&'a Path>,
+    /// `None`: networks on the green-linear prior are refused, saying how to serve them.
+    pub green_linear: Option<GreenLinearSource<'a>>,
+}
+
+impl<'a> From<Option<&'a Path>> for LoadContext<'a> {
+    fn from(ort_dylib: Option<&'a Path>) -> Self {
+        Self {
+            ort_dylib,
+            green_linear: None,
+        }
+    }
+}
 
 /// Why a model (or ONNX Runtime) could not be loaded; the message names the file and the problem.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -53,19 +79,24 @@ pub fn model_dirs(root: &Path) -> Result<Vec<PathBuf>, ModelLoadError> {
 /// error, so that a server can refuse it and serve the others. Fails as a whole when `root` is
 /// unreadable or when it holds models and ONNX Runtime is missing: that is the machine's fault, not
 /// one model's, and none of them could be served.
-pub fn load_each(
+pub fn load_each<'a>(
     root: &Path,
     mesh: &TetMesh,
-    ort_dylib: Option<&Path>,
+    context: impl Into<LoadContext<'a>>,
 ) -> Result<Vec<Result<OnnxModel, ModelLoadError>>, ModelLoadError> {
+    let context = context.into();
     let dirs = model_dirs(root)?;
     if !dirs.is_empty() {
-        runtime::locate(ort_dylib)?;
+        runtime::locate(context.ort_dylib)?;
     }
-    Ok(dirs.iter().map(|dir| OnnxModel::load(dir, mesh, ort_dylib)).collect())
+    Ok(dirs.iter().map(|dir| OnnxModel::load(dir, mesh, context)).collect())
 }
 
 /// Loads every model under `root` for `mesh`; the first refusal stops the load with its reason.
-pub fn load_all(root: &Path, mesh: &TetMesh, ort_dylib: Option<&Path>) -> Result<Vec<OnnxModel>, ModelLoadError> {
-    load_each(root, mesh, ort_dylib)?.into_iter().collect()
+pub fn load_all<'a>(
+    root: &Path,
+    mesh: &TetMesh,
+    context: impl Into<LoadContext<'a>>,
+) -> Result<Vec<OnnxModel>, ModelLoadError> {
+    load_each(root, mesh, context)?.into_iter().collect()
 }

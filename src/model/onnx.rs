@@ -11,14 +11,24 @@ use ort::session::Session;
 use ort::session::builder::GraphOptimizationLevel;
 use ort::value::TensorRef;
 
-use super::ModelLoadError;
 use super::basis::{self, Basis};
-use super::manifest::{Manifest, Mode};
+use super::manifest::{Manifest, Mode, PriorModel};
+use super::prior::ModelPrior;
 use super::signature::{self, COEFFICIENTS, DISPLACEMENT, Input, Output, Signature};
+use super::{LoadContext, ModelLoadError};
 use crate::engine::{Answer, DeformationModel, Forces, ModelError, ModelInfo, ModelKind, StageTiming, Target};
 use crate::mesh::TetMesh;
 use crate::prior::gpu::{GpuBasis, GpuError, GpuPrior};
 use crate::prior::{Coefficients, InteractionPoints, Kelvinlet, NodeCloud, Workspace};
+
+/// Where a request runs on the GPU: the resident cloud, the basis beside it, and the Kelvinlet that
+/// the same dispatch evaluates.
+#[derive(Clone, Copy)]
+struct GpuRequest<'a> {
+    cloud: usize,
+    basis: &'a GpuBasis,
+    kelvinlet: &'a Kelvinlet,
+}
 
 /// A model directory's files, read: `manifest.toml`, `model.onnx` and, for graphs that output
 /// coefficients, `basis.safetensors`.
@@ -56,7 +66,7 @@ pub struct OnnxModel {
     reads_prior: bool,
     channels: usize,
     node_count: usize,
-    prior: Kelvinlet,
+    prior: ModelPrior,
     all_nodes: NodeCloud,
     /// `Session::run` needs exclusive access; one request at a time per model.
     session: Mutex<Session>,
@@ -68,7 +78,7 @@ pub struct OnnxModel {
 impl OnnxModel {
     /// Loads `dir/model.onnx` (and `dir/basis.safetensors` if there is one) under `dir/manifest.toml`,
     /// validates them against `mesh`, warms up.
-    pub fn load(dir: &Path, mesh: &TetMesh, ort_dylib: Option<&Path>) -> Result<Self, ModelLoadError> {
+    pub fn load<'a>(dir: &Path, mesh: &TetMesh, context: impl Into<LoadContext<'a>>) -> Result<Self, ModelLoadError> {
         let read = |name: &str| {
             let path = dir.join(name);
             std::fs::read(&path).map_err(|e| ModelLoadError::new(&path.display().to_string(), e.to_string()))
@@ -87,22 +97,24 @@ impl OnnxModel {
             onnx: &onnx,
             basis: basis.as_deref(),
         };
-        Self::from_parts(&dir.display().to_string(), files, mesh, ort_dylib)
+        Self::from_parts(&dir.display().to_string(), files, mesh, context)
     }
 
     /// Builds a model from its files' contents; `origin` names them in errors (`origin/manifest.toml`,
     /// `origin/model.onnx`, `origin/basis.safetensors`).
-    pub fn from_parts(
+    pub fn from_parts<'a>(
         origin: &str,
         files: ModelFiles<'_>,
         mesh: &TetMesh,
-        ort_dylib: Option<&Path>,
+        context: impl Into<LoadContext<'a>>,
     ) -> Result<Self, ModelLoadError> {
+        let context = context.into();
         let manifest_path = format!("{origin}/manifest.toml");
         let manifest = Manifest::parse(files.manifest, &manifest_path)?;
         manifest.check_against(mesh, origin)?;
+        let prior = model_prior(&manifest, context, &manifest_path)?;
         let onnx_path = format!("{origin}/model.onnx");
-        let environment = super::runtime::environment(ort_dylib)?;
+        let environment = super::runtime::environment(context.ort_dylib)?;
         // An interaction graph is a few small operators over K points: waking a second thread for
         // each (spinning is off, to leave the cores to the prior) costs more than it saves.
         let intra_threads = if manifest.reads_interaction() { 1 } else { threads() };
@@ -154,10 +166,11 @@ impl OnnxModel {
         let mut metadata: BTreeMap<String, String> = BTreeMap::new();
         metadata.insert("mode".into(), format!("{:?}", manifest.model.mode).to_lowercase());
         metadata.insert("method".into(), format!("{:?}", manifest.model.method).to_lowercase());
-        let prior = manifest.prior;
-        metadata.insert("prior.poisson_ratio".into(), prior.poisson_ratio.to_string());
-        metadata.insert("prior.epsilon_m".into(), prior.epsilon.to_string());
-        metadata.insert("prior.lambda".into(), prior.lambda.to_string());
+        let params = manifest.prior.kelvinlet();
+        metadata.insert("prior.model".into(), prior.name().into());
+        metadata.insert("prior.poisson_ratio".into(), params.poisson_ratio.to_string());
+        metadata.insert("prior.epsilon_m".into(), params.epsilon.to_string());
+        metadata.insert("prior.lambda".into(), params.lambda.to_string());
         metadata.insert("inputs".into(), format!("{:?}", manifest.model.inputs).to_lowercase());
         if let Some(basis) = &basis {
             metadata.insert("basis.modes".into(), basis.modes().to_string());
@@ -188,7 +201,7 @@ impl OnnxModel {
             reads_prior: manifest.reads_prior(),
             channels,
             node_count: n,
-            prior: Kelvinlet::new(manifest.prior),
+            prior,
             all_nodes: NodeCloud::new(mesh.positions.iter().copied()),
             session: Mutex::new(session),
             template,
@@ -303,6 +316,24 @@ impl OnnxModel {
     }
 }
 
+/// The prior the manifest names; green-linear's Green's functions come from `context`.
+fn model_prior(manifest: &Manifest, context: LoadContext<'_>, origin: &str) -> Result<ModelPrior, ModelLoadError> {
+    match manifest.prior.model {
+        PriorModel::Kelvinlet => Ok(ModelPrior::Kelvinlet(Kelvinlet::new(manifest.prior.kelvinlet()))),
+        PriorModel::GreenLinear => {
+            let source = context.green_linear.ok_or_else(|| {
+                ModelLoadError::new(
+                    origin,
+                    "prior.model = \"green-linear\", but this loader has no Green's functions to give it \
+                     (nak serve and nak eval build them when a model needs them)",
+                )
+            })?;
+            let green = source().map_err(|e| ModelLoadError::new(origin, format!("green-linear prior: {e}")))?;
+            Ok(ModelPrior::GreenLinear(green))
+        }
+    }
+}
+
 /// A graph outputs `coefficients` exactly when a basis lies beside it; the basis must fit the mesh and
 /// the graph's M.
 fn load_basis(
@@ -372,8 +403,9 @@ impl DeformationModel for OnnxModel {
     }
 
     fn attach_gpu(&self, gpu: &Arc<GpuPrior>, clouds: &[Option<&[u32]>]) -> Result<(), GpuError> {
-        // Attached once: a second engine attaching the same model keeps the first upload.
-        let (Some(basis), None) = (&self.basis, self.gpu_basis.get()) else {
+        // Attached once: a second engine attaching the same model keeps the first upload. A model on
+        // the green-linear prior keeps its basis on the CPU, where that prior is computed.
+        let (Some(basis), None, Some(_)) = (&self.basis, self.gpu_basis.get(), self.prior.kelvinlet()) else {
             return Ok(());
         };
         let rows = clouds.iter().map(|nodes| basis.rows_f32(*nodes)).collect();
@@ -426,9 +458,12 @@ impl OnnxModel {
         if self.reads_prior {
             // The prior is an input: it must be ready, over every node, before the network runs.
             let start = Instant::now();
-            self.prior.solve(points, &mut buffers.workspace)?;
+            let every_node = Target {
+                cloud: &self.all_nodes,
+                nodes: None,
+            };
             self.prior
-                .evaluate(&buffers.workspace.coefficients, &self.all_nodes, &mut buffers.prior);
+                .field(points, every_node, &mut buffers.workspace, &mut buffers.prior)?;
             timing.prior_us = start.elapsed().as_secs_f32() * 1e6;
         }
         self.fill_features(points, buffers);
@@ -457,9 +492,7 @@ impl OnnxModel {
                 let (prior, net) = rayon::join(
                     || {
                         let start = Instant::now();
-                        let r = self.prior.solve(points, workspace).map(|()| {
-                            self.prior.evaluate(&workspace.coefficients, target.cloud, out);
-                        });
+                        let r = self.prior.field(points, target, workspace, out);
                         prior_us = start.elapsed().as_secs_f32() * 1e6;
                         r
                     },
@@ -492,8 +525,14 @@ impl OnnxModel {
         if let Some(gpu_basis) = self.gpu_basis.get()
             && let Some(resident) = target.cloud.resident()
             && gpu_basis.lives_on(&resident.gpu)
+            && let Some(kelvinlet) = self.prior.kelvinlet()
         {
-            match self.predict_on_gpu(points, resident.cloud, workspace, buffers, out, timing, gpu_basis) {
+            let on_gpu = GpuRequest {
+                cloud: resident.cloud,
+                basis: gpu_basis,
+                kelvinlet,
+            };
+            match self.predict_on_gpu(points, on_gpu, workspace, buffers, out, timing) {
                 Ok(()) => return Ok(()),
                 // The answer is still owed: the CPU gives the same field, a little later.
                 Err(e) => tracing::warn!(model = %self.info.name, "GPU failed, this request runs on the CPU: {e}"),
@@ -507,9 +546,7 @@ impl OnnxModel {
             Mode::Residual => rayon::join(
                 || {
                     let start = Instant::now();
-                    let result = self.prior.solve(points, workspace).map(|()| {
-                        self.prior.evaluate(&workspace.coefficients, target.cloud, out);
-                    });
+                    let result = self.prior.field(points, target, workspace, out);
                     timing.prior_us = start.elapsed().as_secs_f32() * 1e6;
                     result
                 },
@@ -521,13 +558,10 @@ impl OnnxModel {
             }
         };
         let start = Instant::now();
-        let result = prior
-            .map_err(ModelError::from)
-            .and(encoded)
-            .map(|()| match &self.basis {
-                Some(basis) => basis.add_product(network, target.nodes, out),
-                None => gather(network, target, out, true),
-            });
+        let result = prior.and(encoded).map(|()| match &self.basis {
+            Some(basis) => basis.add_product(network, target.nodes, out),
+            None => gather(network, target, out, true),
+        });
         timing.network_us = encoder_us + start.elapsed().as_secs_f32() * 1e6;
         result
     }
@@ -555,30 +589,32 @@ impl OnnxModel {
     /// The interaction form with Φ on the GPU: the network gives g on the CPU, then one dispatch
     /// evaluates prior and residual together over resident cloud `cloud`, `Σ_j Γ_j k_j + Φ g`
     /// (DESIGN.md §7). `prior_us` is the solve and that dispatch; `network_us` the encoder.
-    #[allow(clippy::too_many_arguments)]
     fn predict_on_gpu(
         &self,
         points: &InteractionPoints,
-        cloud: usize,
+        GpuRequest {
+            cloud,
+            basis,
+            kelvinlet,
+        }: GpuRequest<'_>,
         workspace: &mut Workspace,
         buffers: &mut Buffers,
         out: &mut [f32],
         timing: &mut StageTiming,
-        basis: &GpuBasis,
     ) -> Result<(), ModelError> {
         self.encode(points, &mut buffers.input, &mut buffers.network, &mut timing.network_us)?;
         let start = Instant::now();
         let empty = Coefficients::default();
         let coefficients = match self.mode {
             Mode::Residual => {
-                self.prior.solve(points, workspace)?;
+                kelvinlet.solve(points, workspace)?;
                 &workspace.coefficients
             }
             Mode::Direct => &empty,
         };
         let result = basis
             .gpu()
-            .evaluate_with_basis(&self.prior, cloud, coefficients, basis, &buffers.network, out)
+            .evaluate_with_basis(kelvinlet, cloud, coefficients, basis, &buffers.network, out)
             .map_err(|e| ModelError::Runtime(e.to_string()));
         timing.prior_us = start.elapsed().as_secs_f32() * 1e6;
         result

@@ -1,0 +1,50 @@
+//! The prior a network is composed with, as its manifest names it: the Kelvinlet with the model's own
+//! parameters, or the exact linear answer through green-linear's Green's functions (shared with the
+//! server's `green-linear` model).
+
+use std::sync::Arc;
+
+use crate::engine::{ModelError, Target};
+use crate::fem::GreenLinear;
+use crate::prior::{InteractionPoints, Kelvinlet, Workspace};
+
+pub enum ModelPrior {
+    Kelvinlet(Kelvinlet),
+    GreenLinear(Arc<GreenLinear>),
+}
+
+impl ModelPrior {
+    /// Writes the prior's displacement at `target`'s nodes into `out`, row-major (n, 3).
+    pub fn field(
+        &self,
+        points: &InteractionPoints,
+        target: Target<'_>,
+        workspace: &mut Workspace,
+        out: &mut [f32],
+    ) -> Result<(), ModelError> {
+        match self {
+            ModelPrior::Kelvinlet(kelvinlet) => {
+                kelvinlet.solve(points, workspace)?;
+                kelvinlet.evaluate(&workspace.coefficients, target.cloud, out);
+                Ok(())
+            }
+            // The grasp forces green-linear also gives are not the network's: dropped.
+            ModelPrior::GreenLinear(green) => green.solve(points, target.nodes, out, &mut Vec::new()),
+        }
+    }
+
+    /// The Kelvinlet, for the GPU path that evaluates it with a reduced basis in one dispatch.
+    pub fn kelvinlet(&self) -> Option<&Kelvinlet> {
+        match self {
+            ModelPrior::Kelvinlet(kelvinlet) => Some(kelvinlet),
+            ModelPrior::GreenLinear(_) => None,
+        }
+    }
+
+    pub fn name(&self) -> &'static str {
+        match self {
+            ModelPrior::Kelvinlet(_) => "kelvinlet",
+            ModelPrior::GreenLinear(_) => "green-linear",
+        }
+    }
+}
