@@ -66,6 +66,16 @@ enum DatasetCommand {
     /// Check that directories made by `nak datagen --shard I/N` are every shard of one dataset,
     /// each complete, and assemble them into the dataset an unsharded run makes.
     Join(cli::dataset::JoinArgs),
+    /// Write a served model's field for every sample of a dataset split (training's priors).
+    Fields {
+        #[command(flatten)]
+        fields: cli::fields::FieldsArgs,
+        /// The dataset's mesh [default: the embedded phantom liver].
+        #[arg(long)]
+        mesh: Option<PathBuf>,
+        #[command(flatten)]
+        models: cli::engine::ModelArgs,
+    },
 }
 
 #[derive(Subcommand)]
@@ -101,6 +111,12 @@ fn main() -> anyhow::Result<()> {
         Command::Dataset {
             command: DatasetCommand::Join(args),
         } => cli::dataset::join(&args),
+        Command::Dataset {
+            command: DatasetCommand::Fields { fields, mesh, models },
+        } => {
+            let engine = models.engine(mesh, &fields.model)?;
+            cli::fields::run(&fields, &engine)
+        }
         Command::Eval { eval, mesh, models } => {
             let engine = models.engine(mesh, &eval.model)?;
             cli::eval::run(&eval, &engine)

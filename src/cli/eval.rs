@@ -2,7 +2,7 @@
 //! the serving engine takes per request, measured one request at a time after the scoring pass.
 
 use std::collections::BTreeMap;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
 use nak::data::dataset;
@@ -112,18 +112,25 @@ fn print_forces(forces: &BTreeMap<String, ForceSummary>, engine: &Engine, model:
     }
 }
 
-pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
-    let info = dataset::read_info(&args.data)?;
+/// The dataset at `dir`, refused unless it was made on the engine's mesh.
+pub fn dataset_for(dir: &Path, engine: &Engine) -> anyhow::Result<dataset::DatasetInfo> {
+    let info = dataset::read_info(dir)?;
     let mesh = engine.mesh();
     if info.mesh_hash != mesh.content_hash {
         bail!(
             "{} was made on mesh {} ({}); pass that mesh with --mesh (the loaded one is {})",
-            args.data.display(),
+            dir.display(),
             info.mesh_name,
             info.mesh_hash,
             mesh.content_hash
         );
     }
+    Ok(info)
+}
+
+pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
+    let info = dataset_for(&args.data, engine)?;
+    let mesh = engine.mesh();
     let mut errors: BTreeMap<String, Vec<SampleError>> = BTreeMap::new();
     let mut force_errors: BTreeMap<String, Vec<GraspForceError>> = BTreeMap::new();
     let mut failed = Vec::new();

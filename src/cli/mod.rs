@@ -4,6 +4,7 @@ pub mod datagen;
 pub mod dataset;
 pub mod engine;
 pub mod eval;
+pub mod fields;
 pub mod mesh_info;
 pub mod predict;
 pub mod replay;

@@ -265,7 +265,7 @@ pub fn write_info(dir: &Path, info: &DatasetInfo) -> Result<(), DatasetError> {
 }
 
 /// Writes `mesh.safetensors`: `positions` f64 [N, 3], `nodal_volumes` f64 [N], `surface_nodes` u32 [S],
-/// `normals` f64 [N, 3]; metadata: name, content hash, the prior (ν, ε, λ) and the grasp neighbour range.
+/// `normals` f64 [N, 3], `tets` u32 [T, 4] (graph networks read the mesh's edges from them); metadata: name, content hash, the prior (ν, ε, λ) and the grasp neighbour range.
 pub fn write_mesh(dir: &Path, mesh: &TetMesh) -> Result<(), DatasetError> {
     let path = dir.join("mesh.safetensors");
     let positions: Vec<f64> = mesh.positions.as_flattened().to_vec();
@@ -291,6 +291,12 @@ pub fn write_mesh(dir: &Path, mesh: &TetMesh) -> Result<(), DatasetError> {
             bytemuck::cast_slice(&mesh.surface_nodes),
         ),
         ("normals", Dtype::F64, vec![n, 3], bytemuck::cast_slice(&normals)),
+        (
+            "tets",
+            Dtype::U32,
+            vec![mesh.tets.len(), 4],
+            bytemuck::cast_slice(&mesh.tets),
+        ),
     ]
     .into_iter()
     .map(|(name, dtype, shape, data)| Ok((name, TensorView::new(dtype, shape, data).map_err(|e| format(&path, e))?)))
