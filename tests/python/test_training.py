@@ -27,8 +27,9 @@ from nak_training.errors import TrainingInputError
 from nak_training.evaluate import evaluate, nak_eval
 from nak_training.export import export
 from nak_training.kelvinlet import Prior, pad_points
-from nak_training.models import Grasped, build
+from nak_training.models import Grasped, MeshGNN, build
 from nak_training.reduced_train import ReducedTrainer
+from nak_training.served import Nak
 from nak_training.train import Trainer
 
 COARSE = ROOT / "models" / "phantom-liver" / "liver-coarse.msh"
@@ -333,3 +334,82 @@ def test_reduced_training_beats_the_untrained_network_through_nak_eval(
     trained = evaluate(reduced / "pod-trained", coarse_data, nak_binary, COARSE)
     untrained = nak_eval(nak_binary, coarse_data, "pod-untrained", COARSE, reduced)["subsets"]["combined"]
     assert trained["dcm_combined"] > untrained["dcm"] + 5.0, (trained, untrained)
+
+
+def test_a_network_on_the_green_linear_prior_is_trained_and_served_on_it(
+    nak_binary: Path, coarse_data: Path, tmp_path: Path
+) -> None:
+    """+Res against green-linear: training reads the prior from `nak dataset fields`, the manifest names
+    it, and nak serves green-linear + Φ g (building the Green's functions because the model needs them)."""
+    dataset = open_dataset(coarse_data)
+    values = dict(name="pod-green", architecture="pod", prior="green-linear", modes=8, width=32, steps=60, batch=8)
+    config = parse_config(tiny_config(**values), "tiny")
+    run = tmp_path / "run"
+    run.mkdir()
+    ReducedTrainer(config, dataset, run, log=quiet, nak=Nak(nak_binary, COARSE)).run()
+    assert (run / "green-linear-train.safetensors").is_file()
+    models = tmp_path / "models"
+    export(config, dataset, run, models, log=quiet)
+    manifest = tomllib.loads((models / "pod-green" / "manifest.toml").read_text())
+    assert manifest["prior"]["model"] == "green-linear"
+
+    def served(model: str) -> np.ndarray:
+        out = tmp_path / f"{model}.safetensors"
+        args = ["dataset", "fields", "--data", str(coarse_data), "--model", model, "--split", "test"]
+        Nak(nak_binary, COARSE).run(*args, "--out", str(out), "--models", str(models), "--green-linear")
+        return load_file(str(out))["displacement"]
+
+    network, green = served("pod-green"), served("green-linear")
+    sample = dataset.load("test").samples[0]
+    interaction = np.concatenate([dataset.mesh.positions[sample.nodes].numpy(), sample.displacements], axis=1)
+    session = onnxruntime.InferenceSession(str(models / "pod-green" / "model.onnx"))
+    (g,) = session.run(["coefficients"], {"interaction": interaction[None].astype("f4")})
+    basis = load_file(str(models / "pod-green" / "basis.safetensors"))["basis"].astype("f4")
+    residual = (basis @ g[0]).reshape(-1, 3)
+    scale = float(np.abs(green[0]).max())
+    assert np.abs(network[0] - (green[0] + residual)).max() <= 1e-3 * scale
+
+
+def test_the_mesh_gnn_carries_its_edges_and_is_served_as_onnxruntime_computes_it(
+    nak_binary: Path, coarse_data: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    dataset = open_dataset(coarse_data)
+    mesh = dataset.mesh
+    model = build("gnn", "cpu", mesh).eval()
+    assert isinstance(model, MeshGNN)
+    h = torch.randn(2, mesh.node_count, 32)
+    trained_path = model.neighbour_mean(h)
+    monkeypatch.setattr(torch.onnx, "is_in_onnx_export", lambda: True)
+    exported_path = model.neighbour_mean(h)
+    monkeypatch.undo()
+    assert torch.allclose(trained_path, exported_path, atol=1e-5)
+    # A node's mean is over its tetrahedral neighbours: check one by hand.
+    edges = mesh.edges()
+    node = int(edges[0, 0])
+    neighbours = torch.cat([edges[1, edges[0] == node], edges[0, edges[1] == node]])
+    assert torch.allclose(trained_path[:, node], h[:, neighbours].mean(1), atol=1e-5)
+
+    config = parse_config(tiny_config(name="gnn-tiny", architecture="gnn", steps=20, batch=4), "tiny")
+    run = tmp_path / "run"
+    run.mkdir()
+    Trainer(config, dataset, run, log=quiet).run()
+    models = tmp_path / "models"
+    export(config, dataset, run, models, log=quiet)  # checks onnxruntime against PyTorch
+    out = tmp_path / "fields.safetensors"
+    args = ["dataset", "fields", "--data", str(coarse_data), "--model", "gnn-tiny", "--split", "test"]
+    Nak(nak_binary, COARSE).run(*args, "--out", str(out), "--models", str(models))
+    served = load_file(str(out))["displacement"][0]
+    sample = dataset.load("test").samples[0]
+    features = np.zeros((1, mesh.node_count, 7), dtype=np.float32)
+    features[0, :, :3] = mesh.positions.numpy()
+    features[0, sample.nodes, 3:6] = sample.displacements
+    features[0, sample.nodes, 6] = 1.0
+    session = onnxruntime.InferenceSession(str(models / "gnn-tiny" / "model.onnx"))
+    (network,) = session.run(["displacement"], {"features": features})
+    _, points, u, mask = pad_points(
+        mesh.positions, [torch.from_numpy(sample.nodes)], [torch.from_numpy(sample.displacements)]
+    )
+    expected = (
+        network[0] + Prior(mesh.prior[0], 0.02, mesh.prior[2]).evaluate(mesh.positions, points, u, mask)[0].numpy()
+    )
+    assert np.linalg.norm(served - expected) / np.linalg.norm(expected) < 1e-5

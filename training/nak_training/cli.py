@@ -15,6 +15,7 @@ from pathlib import Path
 from .config import TrainConfig, load_config
 from .dataset import open_dataset
 from .errors import TrainingInputError
+from .served import Nak
 
 DEFAULT_MODELS = Path("models/phantom-liver")
 DEFAULT_MESH = Path("models/phantom-liver/liver.msh")
@@ -36,11 +37,14 @@ def main(argv: list[str] | None = None) -> int:
         command.add_argument("--data", type=Path, required=True, help="a dataset made by nak datagen")
         command.add_argument("--runs", type=Path, default=Path("out/runs"), help="checkpoints and logs")
         command.add_argument("--out", type=Path, default=DEFAULT_MODELS, help="where model directories go")
-        command.add_argument("--nak", type=Path, default=DEFAULT_NAK, help="the nak binary (evaluate)")
+        command.add_argument(
+            "--nak", type=Path, default=DEFAULT_NAK, help="the nak binary (evaluate, green-linear prior)"
+        )
         command.add_argument("--mesh", type=Path, default=DEFAULT_MESH, help="the dataset's mesh (evaluate)")
         command.add_argument("--steps", type=int, help="override the configuration's step count")
     report = commands.add_parser("report", help="the results table and the accuracy-latency figure")
-    report.add_argument("--data", type=Path, required=True, help="the dataset the models were scored on")
+    report.add_argument("--data", type=Path, required=True, help="the linear dataset the models were scored on")
+    report.add_argument("--nonlinear-data", type=Path, help="the nonlinear dataset (Table 3 and its points)")
     report.add_argument("--models", type=Path, nargs="+", default=[DEFAULT_MODELS], help="model directories")
     report.add_argument("--nak", type=Path, default=DEFAULT_NAK)
     report.add_argument("--mesh", type=Path, default=DEFAULT_MESH)
@@ -50,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "report":
             from .report import write_report
 
-            write_report(args.data, args.models, args.nak, args.mesh, args.out)
+            write_report(args.data, args.models, args.nak, args.mesh, args.out, args.nonlinear_data)
             return 0
         config = load_config(args.config, {"steps": args.steps} if args.steps else None)
         run(args.command, config, args)
@@ -72,7 +76,7 @@ def run(command: str, config: TrainConfig, args: argparse.Namespace) -> None:
         run_dir = args.runs / config.name
         run_dir.mkdir(parents=True, exist_ok=True)
         trainer = ReducedTrainer if config.reduced else Trainer
-        trainer(config, dataset, run_dir, log=lambda m: print(m, flush=True)).run()
+        trainer(config, dataset, run_dir, log=lambda m: print(m, flush=True), nak=Nak(args.nak, args.mesh)).run()
     if command in ("export", "all"):
         from .export import export
 

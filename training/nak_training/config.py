@@ -16,6 +16,8 @@ METHODS = {"base": "direct", "res": "residual", "reg": "direct"}
 PRECISIONS = ("f16", "f32")
 # How a reduced network's basis is shipped: a basis file nak multiplies, or folded into the graph.
 FORMS = ("basis", "graph")
+# The prior +Res learns its residual to: the Kelvinlet, or the exact linear answer nak serves.
+PRIORS = ("kelvinlet", "green-linear")
 SUBSETS = {"single": ("single",), "multi": ("multi",), "all": ("single", "multi")}
 
 
@@ -29,6 +31,8 @@ class TrainConfig:
     subset: str = "all"
     # Kelvinlet ε in metres, or "fit": the best of a grid over 1–8 cm on the train split.
     epsilon: float | str = "fit"
+    # What +Res adds its output to (and what the manifest tells nak to compose it with).
+    prior: str = "kelvinlet"
     steps: int = 3000
     batch: int = 16
     # Nodes decoded (and scored) per step; the pooled summary always sees every node.
@@ -86,6 +90,7 @@ def parse_config(values: dict[str, Any], origin: str) -> TrainConfig:
         "basis_precision": PRECISIONS,
         "form": FORMS,
         "encoder": ENCODERS,
+        "prior": PRIORS,
     }
     for key, allowed in choices.items():
         if key in values and values[key] not in allowed:

@@ -36,6 +36,16 @@ class Mesh:
     normals: torch.Tensor  # f64 [N, 3], unit on the surface, zero inside
     prior: tuple[float, float, float]  # the mesh's Kelvinlet (ν, ε, λ)
     neighbours: tuple[int, int]  # grasp neighbour count range of the sampling distribution
+    tets: torch.Tensor | None = None  # i64 [T, 4]; None in datasets made before nak wrote them
+
+    def edges(self) -> torch.Tensor:
+        """Every edge of the tetrahedra once, i64 [2, E] (smaller node first)."""
+        if self.tets is None:
+            raise TrainingInputError(
+                self.name, "the dataset's mesh.safetensors has no tets: rerun its nak datagen command to add them"
+            )
+        pairs = torch.cat([self.tets[:, [a, b]] for a, b in ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))])
+        return torch.unique(pairs.sort(dim=1).values, dim=0).T.contiguous()
 
     @property
     def node_count(self) -> int:
@@ -199,6 +209,7 @@ def read_mesh(path: Path) -> Mesh:
                 float(metadata["lambda"]),
             ),
             neighbours=(int(metadata["neighbours_min"]), int(metadata["neighbours_max"])),
+            tets=torch.from_numpy(tensors["tets"].astype(np.int64)) if "tets" in tensors else None,
         )
     except KeyError as e:
         raise TrainingInputError(path, f"missing {e} (made by an older nak? regenerate the dataset)") from e

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import subprocess
 import tempfile
 import tomllib
 from pathlib import Path
@@ -19,24 +18,19 @@ from .config import TrainConfig
 from .dataset import Dataset
 from .errors import TrainingInputError
 from .export import CEILING_PREFIX, MANIFEST_HEADER, export
+from .served import Nak
 
 
 def nak_eval(
     nak: Path, data: Path, model: str, mesh: Path, models_root: Path | None, split: str = "test"
 ) -> dict[str, Any]:
     """Runs `nak eval` and returns its JSON report."""
-    if not nak.is_file():
-        raise TrainingInputError(nak, "nak binary not found: build it with `cargo build --release` (or pass --nak)")
     with tempfile.TemporaryDirectory() as tmp:
         output = Path(tmp) / "eval.json"
-        command = [str(nak), "eval", "--data", str(data), "--model", model, "--mesh", str(mesh)]
-        command += ["--split", split, "--output", str(output)]
+        args = ["eval", "--data", str(data), "--model", model, "--split", split, "--output", str(output)]
         if models_root is not None:
-            command += ["--models", str(models_root)]
-        result = subprocess.run(command, capture_output=True, text=True)
-        if result.returncode != 0:
-            raise TrainingInputError(" ".join(command), f"nak eval failed:\n{result.stderr.strip()}")
-        print(result.stdout, end="")
+            args += ["--models", str(models_root)]
+        print(Nak(nak, mesh).run(*args), end="")
         report: dict[str, Any] = json.loads(output.read_text())
         return report
 

@@ -72,6 +72,7 @@ def export(config: TrainConfig, dataset: Dataset, run_dir: Path, out_root: Path,
             "node_count": dataset.mesh.node_count,
         },
         "prior": {
+            "model": config.prior if config.method == "res" else "kelvinlet",
             "poisson_ratio": dataset.mesh.prior[0],
             "epsilon_m": float(state["epsilon"]),
             "lambda": dataset.mesh.prior[2],
@@ -89,7 +90,7 @@ def write_features_graph(
     config: TrainConfig, dataset: Dataset, run_dir: Path, check: list[Sample], graph: Path, log: Any
 ) -> list[str]:
     """A full-field network: `features` [B, N, 7] → `displacement` [B, N, 3]."""
-    model = load_trained(run_dir, config)
+    model = load_trained(run_dir, config, dataset.mesh)
     features = served_features(dataset.mesh, [s.nodes for s in check], [s.displacements for s in check])
     torch.onnx.export(
         model,
@@ -156,7 +157,8 @@ def checked(model: torch.nn.Module, graph: Path, inputs: list[torch.Tensor], nam
 
 
 def describe(config: TrainConfig) -> str:
-    method = {"base": "Base", "res": "+Res (Kelvinlet residual)", "reg": "+Reg (Kelvinlet regularization)"}
+    residual = "green-linear residual" if config.prior == "green-linear" else "Kelvinlet residual"
+    method = {"base": "Base", "res": f"+Res ({residual})", "reg": "+Reg (Kelvinlet regularization)"}
     trained_on = {"single": "single-grasper", "multi": "two-grasper", "all": "all"}[config.subset]
     if config.reduced:
         basis = {"pod": "POD basis", "deeponet": "DeepONet trunk"}[config.architecture]

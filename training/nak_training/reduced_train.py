@@ -18,7 +18,8 @@ from .dataset import Dataset, Split
 from .errors import TrainingInputError
 from .kelvinlet import pad_points
 from .reduced import ReducedNet, ceiling, project, weighted_basis
-from .train import Run, prior_fields
+from .served import Nak
+from .train import Run
 
 CEILING_MODES = [8, 16, 32, 48, 64, 96, 128, 192, 256]
 
@@ -41,8 +42,10 @@ def squared_norms(fields: torch.Tensor, volumes: torch.Tensor) -> torch.Tensor:
 class ReducedTrainer(Run):
     model: ReducedNet
 
-    def __init__(self, config: TrainConfig, dataset: Dataset, run_dir: Path, log: Any = print) -> None:
-        super().__init__(config, dataset, run_dir, log)
+    def __init__(
+        self, config: TrainConfig, dataset: Dataset, run_dir: Path, log: Any = print, nak: Nak | None = None
+    ) -> None:
+        super().__init__(config, dataset, run_dir, log, nak)
         self.residual = config.method == "res"
         self.train_targets = self._targets(self.train, "train")
         self.val_targets = self._targets(self.val, "val")
@@ -76,7 +79,7 @@ class ReducedTrainer(Run):
         if not self.residual:
             return split.fields
         self.log(f"prior over the {name} split ({len(split)} samples)…")
-        return split.fields - prior_fields(self.prior, self.mesh, split, batch=64)
+        return split.fields - self.residual_prior(split, name)
 
     def _pod_basis(self) -> torch.Tensor:
         """The POD of the train targets, computed once per run (kept in basis.pt for resume and export)."""

@@ -30,19 +30,35 @@ ARCHITECTURES = {
     "isab": "ISAB (SAB)",
     "pod": "POD basis + set encoder",
     "deeponet": "DeepONet + set encoder",
+    "gnn": "Mesh GNN (PhysGNN-style)",
 }
-SIZED = ("pointnet", "deepset", "isab")
+SIZED = ("pointnet", "deepset", "isab", "gnn")
 METHODS = ("base", "res", "reg")
 METHOD_LABEL = {"base": "Base", "res": "+Res", "reg": "+Reg"}
 # Table 2 columns: (what the model was trained on, the test subset scored, heading).
 COLUMNS = (("single", "single", "Indiv."), ("multi", "multi", "Comb."), ("all", "combined", "Multi"))
-# The paper's Table 2 (linear regime, code form of DCM), for the rows nak has counterparts of.
+# The paper's Tables 2 (linear) and 3 (nonlinear), code form of DCM, for the rows nak has counterparts
+# of (its U-Net is nak's DeepSet U-Net, its SAB nak's ISAB, its PhysGNN nak's mesh GNN).
 PAPER = {
-    "pointnet": {"single": (94.23, 94.66, 96.54), "multi": (89.79, 90.11, 91.22), "all": (94.00, 94.12, 95.01)},
-    "deepset": {"single": (92.11, 93.56, 94.04), "multi": (88.23, 89.67, 90.01), "all": (91.20, 92.33, 92.88)},
-    "isab": {"single": (93.42, 94.60, 96.03), "multi": (88.05, 89.91, 91.02), "all": (92.54, 93.66, 94.42)},
+    "linear": {
+        "pointnet": {"single": (94.23, 94.66, 96.54), "multi": (89.79, 90.11, 91.22), "all": (94.00, 94.12, 95.01)},
+        "deepset": {"single": (92.11, 93.56, 94.04), "multi": (88.23, 89.67, 90.01), "all": (91.20, 92.33, 92.88)},
+        "isab": {"single": (93.42, 94.60, 96.03), "multi": (88.05, 89.91, 91.02), "all": (92.54, 93.66, 94.42)},
+        "gnn": {"single": (90.12, 91.77, 92.65), "multi": (86.38, 88.10, 88.66), "all": (89.55, 90.96, 91.54)},
+    },
+    "nonlinear": {
+        "pointnet": {"single": (81.25, 84.65, 85.05), "multi": (79.56, 82.66, 83.33), "all": (83.25, 84.75, 85.21)},
+        "deepset": {"single": (80.56, 84.22, 84.88), "multi": (76.91, 79.83, 82.10), "all": (78.10, 80.45, 81.33)},
+        "isab": {"single": (80.75, 84.44, 84.75), "multi": (78.88, 81.50, 82.83), "all": (81.22, 83.01, 84.00)},
+        "gnn": {"single": (78.05, 82.19, 82.79), "multi": (75.30, 79.18, 80.83), "all": (77.73, 80.58, 81.34)},
+    },
 }
-PAPER_KELVINLET = {"single": 65.24, "multi": 64.33, "all": 64.82}
+PAPER_KELVINLET = {
+    "linear": {"single": 65.24, "multi": 64.33, "all": 64.82},
+    "nonlinear": {"single": 58.88, "multi": 51.67, "all": 55.56},
+}
+# Nonlinear models are named like the linear ones with this suffix (training/configs/nonlinear).
+NONLINEAR_SUFFIX = "-nl"
 
 
 @dataclass(frozen=True)
@@ -53,6 +69,8 @@ class Entry:
     trained_on: str
     epsilon: float
     metrics: dict[str, Any]
+    regime: str = "linear"
+    prior: str = "kelvinlet"
 
 
 def read_models(roots: list[Path]) -> list[Entry]:
@@ -70,6 +88,8 @@ def read_models(roots: list[Path]) -> list[Entry]:
                 trained_on=provenance["trained_on"],
                 epsilon=manifest["prior"]["epsilon_m"],
                 metrics=manifest["metrics"],
+                regime=manifest["model"]["regime"],
+                prior=manifest["prior"].get("model", "kelvinlet"),
             )
         )
     return entries
@@ -88,28 +108,36 @@ def baseline(nak: Path, data: Path, mesh: Path, model: str, epsilon: float | Non
         return metrics_of(nak_eval(nak, data, model, copy, None))
 
 
-def model_name(architecture: str, method: str, trained_on: str) -> str:
+def model_name(architecture: str, method: str, trained_on: str, regime: str = "linear") -> str:
     """The naming of training/configs: `<architecture>-<method>` plus `-indiv` / `-comb` for the
-    models trained on one subset."""
-    return f"{architecture}-{method}" + {"single": "-indiv", "multi": "-comb", "all": ""}[trained_on]
+    models trained on one subset, and `-nl` for the nonlinear regime (training/configs/nonlinear)."""
+    name = f"{architecture}-{method}" + {"single": "-indiv", "multi": "-comb", "all": ""}[trained_on]
+    return name + (NONLINEAR_SUFFIX if regime == "nonlinear" else "")
 
 
-def cell(entries: list[Entry], architecture: str, method: str, trained_on: str, subset: str, key: str) -> str:
-    wanted = model_name(architecture, method, trained_on)
+def cell(
+    entries: list[Entry], architecture: str, method: str, trained_on: str, subset: str, key: str, regime: str
+) -> str:
+    wanted = model_name(architecture, method, trained_on, regime)
     value = next((e.metrics.get(f"{key}_{subset}") for e in entries if e.name == wanted), None)
     return "–" if value is None else f"{value:.2f}"
 
 
-def table(entries: list[Entry], key: str, baselines: dict[str, dict[str, Any]], with_paper: bool) -> list[str]:
+def table(
+    entries: list[Entry], key: str, baselines: dict[str, dict[str, Any]], with_paper: bool, regime: str = "linear"
+) -> list[str]:
     head = "| model | " + " | ".join(f"{h} {METHOD_LABEL[m]}" for _, _, h in COLUMNS for m in METHODS) + " |"
     lines = [head, "|---" * (1 + 3 * len(COLUMNS)) + "|"]
+    paper_rows = PAPER[regime]
     for arch, label in ARCHITECTURES.items():
-        cells = [cell(entries, arch, m, trained, subset, key) for trained, subset, _ in COLUMNS for m in METHODS]
+        cells = [
+            cell(entries, arch, m, trained, subset, key, regime) for trained, subset, _ in COLUMNS for m in METHODS
+        ]
         if all(c == "–" for c in cells):
             continue
         lines.append(f"| {label} (nak{', cpu size' if arch in SIZED else ''}) | " + " | ".join(cells) + " |")
-        if with_paper and arch in PAPER:
-            paper = [f"{PAPER[arch][trained][i]:.2f}" for trained, _, _ in COLUMNS for i in range(3)]
+        if with_paper and arch in paper_rows:
+            paper = [f"{paper_rows[arch][trained][i]:.2f}" for trained, _, _ in COLUMNS for i in range(3)]
             lines.append(f"| {label} (paper, GPU) | " + " | ".join(paper) + " |")
     for name, metrics in baselines.items():
         values = [metrics.get(f"{key}_{subset}") for _, subset, _ in COLUMNS]
@@ -117,15 +145,17 @@ def table(entries: list[Entry], key: str, baselines: dict[str, dict[str, Any]], 
         cells = [("–" if v is None else f"{v:.2f}") if m == "base" else "" for v in values for m in METHODS]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     if with_paper:
-        cells = [f"{PAPER_KELVINLET[trained]:.2f}" if m == "base" else "" for trained, _, _ in COLUMNS for m in METHODS]
+        kelvinlet = PAPER_KELVINLET[regime]
+        cells = [f"{kelvinlet[trained]:.2f}" if m == "base" else "" for trained, _, _ in COLUMNS for m in METHODS]
         lines.append("| Kelvinlet (paper) | " + " | ".join(cells) + " |")
     return lines
 
 
 def figure(entries: list[Entry], baselines: dict[str, dict[str, Any]], path: Path) -> None:
-    markers = {"pointnet": "o", "deepset": "s", "isab": "^", "pod": "D", "deeponet": "P"}
+    """Both regimes on one plot, as the paper's Fig. 2: linear filled, nonlinear hollow."""
+    markers = {"pointnet": "o", "deepset": "s", "isab": "^", "pod": "D", "deeponet": "P", "gnn": "h"}
     colours = {"base": "#9e9e9e", "res": "#1f77b4", "reg": "#d62728"}
-    fig, ax = plt.subplots(figsize=(7.5, 5))
+    fig, ax = plt.subplots(figsize=(8.5, 5.5))
     names: list[tuple[str, float, float]] = []
     for e in entries:
         if e.trained_on != "all":
@@ -133,25 +163,29 @@ def figure(entries: list[Entry], baselines: dict[str, dict[str, Any]], path: Pat
         x, y = e.metrics.get("total_ms_p50"), e.metrics.get("dcm_code_combined")
         if x is None or y is None:
             continue
-        ax.scatter(x, y, marker=markers[e.architecture], s=70, color=colours[e.method], edgecolors="black")
+        colour = colours[e.method]
+        face = colour if e.regime == "linear" else "white"
+        ax.scatter(x, y, marker=markers[e.architecture], s=70, color=face, edgecolors=colour, linewidths=1.6)
         names.append((e.name, x, y))
     for name, metrics in baselines.items():
         x, y = metrics.get("total_ms_p50"), metrics.get("dcm_code_combined")
         if x is not None and y is not None:
-            ax.scatter(x, y, marker="*", s=160, color="#2ca02c", edgecolors="black")
+            face = "white" if "nonlinear" in name else "#2ca02c"
+            ax.scatter(x, y, marker="*", s=160, color=face, edgecolors="#2ca02c", linewidths=1.4)
             names.append((name, x, y))
     for arch, marker in markers.items():
         if any(e.architecture == arch for e in entries):
             ax.scatter([], [], marker=marker, color="white", edgecolors="black", label=ARCHITECTURES[arch])
     for method, colour in colours.items():
         ax.scatter([], [], marker="o", color=colour, label=METHOD_LABEL[method])
+    ax.scatter([], [], marker="o", color="white", edgecolors="black", label="hollow: nonlinear regime")
     ax.set_xscale("log")
     labels = (
         "engine time per request, p50 (ms, log scale; 2 vCPUs, one request at a time)",
-        "DCM, code form (%), linear test split, all samples",
+        "DCM, code form (%), test split, all samples",
         "nak on the phantom liver: accuracy against served time (cf. the paper's Fig. 2)",
     )
-    save(fig, ax, path, labels, legend_size=8, annotate=lambda: place_labels(ax, names))
+    save(fig, ax, path, labels, legend_size=7, annotate=lambda: place_labels(ax, names, fontsize=6))
 
 
 # Where a point's name may go relative to it (points), tried in this order.
@@ -256,51 +290,84 @@ def ceiling_figure(entries: list[Entry], path: Path) -> list[str]:
     return lines
 
 
-def write_report(data: Path, models: list[Path], nak: Path, mesh: Path, out: Path) -> None:
-    entries = read_models(models)
-    fitted = sorted({e.epsilon for e in entries if e.method != "base" and e.epsilon != 0.05})
-    baselines = {"Kelvinlet ε = 5 cm (nak)": baseline(nak, data, mesh, "kelvinlet", 0.05)}
+def regime_baselines(nak: Path, data: Path, mesh: Path, entries: list[Entry], regime: str) -> dict[str, dict[str, Any]]:
+    """The Kelvinlet at 5 cm and at every ε a model of `regime` was fitted to, and green-linear, on `data`."""
+    suffix = " — nonlinear" if regime == "nonlinear" else ""
+    fitted = sorted({e.epsilon for e in entries if e.regime == regime and e.method != "base" and e.epsilon != 0.05})
+    baselines = {f"Kelvinlet ε = 5 cm (nak){suffix}": baseline(nak, data, mesh, "kelvinlet", 0.05)}
     for eps in fitted:
-        baselines[f"Kelvinlet ε = {eps * 100:g} cm (nak)"] = baseline(nak, data, mesh, "kelvinlet", eps)
-    baselines["green-linear (exact linear FEM)"] = baseline(nak, data, mesh, "green-linear")
+        baselines[f"Kelvinlet ε = {eps * 100:g} cm (nak){suffix}"] = baseline(nak, data, mesh, "kelvinlet", eps)
+    baselines[f"green-linear (exact linear FEM){suffix}"] = baseline(nak, data, mesh, "green-linear")
+    return baselines
+
+
+def write_report(
+    data: Path, models: list[Path], nak: Path, mesh: Path, out: Path, nonlinear_data: Path | None = None
+) -> None:
+    entries = read_models(models)
+    linear = regime_baselines(nak, data, mesh, entries, "linear")
+    nonlinear = regime_baselines(nak, nonlinear_data, mesh, entries, "nonlinear") if nonlinear_data else {}
     out.mkdir(parents=True, exist_ok=True)
-    figure(entries, baselines, out / "accuracy-latency.png")
+    figure(entries, {**linear, **nonlinear}, out / "accuracy-latency.png")
     ceiling = ceiling_figure(entries, out / "basis-ceiling.png")
     rows = [
-        "| model | method | trained on | ε (cm) | DCM single | DCM multi | DCM all | code form all | "
+        "| model | regime | method | prior | trained on | ε (cm) | DCM single | DCM multi | DCM all | code form all | "
         "network ms p50 | total ms p50 |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for e in entries:
+    for e in sorted(entries, key=lambda e: (e.regime, e.name)):
         m = e.metrics
         rows.append(
-            f"| `{e.name}` | {METHOD_LABEL[e.method]} | {e.trained_on} | {e.epsilon * 100:g} | "
+            f"| `{e.name}` | {e.regime} | {METHOD_LABEL[e.method]} | {e.prior if e.method == 'res' else '–'} | "
+            f"{e.trained_on} | {e.epsilon * 100:g} | "
             f"{m.get('dcm_single', float('nan')):.2f} | {m.get('dcm_multi', float('nan')):.2f} | "
             f"{m['dcm_combined']:.2f} | {m['dcm_code_combined']:.2f} | {m.get('network_ms_p50', float('nan')):.3f} | "
             f"{m.get('total_ms_p50', float('nan')):.3f} |"
         )
     text = [
-        "# Trained networks on the phantom liver (linear regime)",
+        "# Trained networks on the phantom liver",
         "",
         "Generated by `scripts/train-all` (its last step, `scripts/nak-train report`) from the manifests in",
-        "`models/phantom-liver/` (served) and `models/phantom-liver/table2/` (trained on one subset or at the",
-        "paper's ε; scored, not served). Their `[metrics]` come from `nak eval` on the test split; the",
-        "baselines are scored by `nak eval` when the page is made.",
-        f"Dataset: `{data}` (`nak datagen --regime linear --preset paper --seed 0`). Times: the serving",
-        "engine's time per request (`nak eval`: about 200 test requests spread over the split, one at a",
-        "time) on this machine's 2 vCPUs.",
+        "`models/phantom-liver/` (served), `models/phantom-liver/table2/` and `table3/` (trained on one subset,",
+        "at the paper's ε, or not the best of their method; scored, not served) and `reduced/`. Their",
+        "`[metrics]` come from `nak eval` on the test split; the baselines are scored by `nak eval` when the",
+        "page is made. Times: the serving engine's time per request (`nak eval`: about 200 test requests",
+        "spread over the split, one at a time) on this machine's 2 vCPUs.",
+        f"Linear dataset: `{data}` (`nak datagen --regime linear --preset paper --seed 0`).",
+    ]
+    if nonlinear_data:
+        text += [
+            f"Nonlinear dataset: `{nonlinear_data}` (`nak datagen --regime nonlinear --single 1000 --multi 1000",
+            "--seed 0`; its failed solves left out).",
+        ]
+    text += [
         "",
-        "## DCM in the paper's code form (comparable with its Table 2)",
+        "## Linear regime: DCM in the paper's code form (comparable with its Table 2)",
         "",
         "Indiv.: trained and tested on single-grasper samples; Comb.: two-grasper; Multi: one model",
         "trained on both, tested on all. `–`: not trained.",
         "",
-        *table(entries, "dcm_code", baselines, with_paper=True),
+        *table(entries, "dcm_code", linear, with_paper=True),
         "",
-        "## DCM as DESIGN.md §6 defines it (volume-weighted mean of relative errors)",
+        "## Linear regime: DCM as DESIGN.md §6 defines it (volume-weighted mean of relative errors)",
         "",
-        *table(entries, "dcm", baselines, with_paper=False),
+        *table(entries, "dcm", linear, with_paper=False),
         "",
+    ]
+    if nonlinear_data:
+        text += [
+            "## Nonlinear regime: DCM in the paper's code form (comparable with its Table 3)",
+            "",
+            "Models trained on all samples (Multi) only; `–`: not trained.",
+            "",
+            *table(entries, "dcm_code", nonlinear, with_paper=True, regime="nonlinear"),
+            "",
+            "## Nonlinear regime: DCM as DESIGN.md §6 defines it",
+            "",
+            *table(entries, "dcm", nonlinear, with_paper=False, regime="nonlinear"),
+            "",
+        ]
+    text += [
         "## Every model",
         "",
         *rows,

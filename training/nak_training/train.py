@@ -25,12 +25,14 @@ from .errors import TrainingInputError
 from .kelvinlet import Prior, pad_points
 from .models import Grasped, SetNet, build, parameter_count
 from .revision import git_commit
+from .served import Nak, served_fields
 from .sampling import QSampler
 
 EPSILON_GRID_M = (0.01, 0.015, 0.02, 0.025, 0.03, 0.04, 0.05, 0.06, 0.08)
 FIT_SAMPLES = 400
 STN_PENALTY = 0.01
 PROGRESS_EVERY = 50
+GREEN_LINEAR = "green-linear"
 
 
 def prior_of(mesh: Mesh, epsilon: float) -> Prior:
@@ -97,8 +99,10 @@ class Run:
 
     model: torch.nn.Module
 
-    def __init__(self, config: TrainConfig, dataset: Dataset, run_dir: Path, log: Any = print) -> None:
-        self.config, self.dataset, self.run_dir, self.log = config, dataset, run_dir, log
+    def __init__(
+        self, config: TrainConfig, dataset: Dataset, run_dir: Path, log: Any = print, nak: Nak | None = None
+    ) -> None:
+        self.config, self.dataset, self.run_dir, self.log, self.nak = config, dataset, run_dir, log, nak
         torch.set_num_threads(config.threads)
         torch.manual_seed(config.seed)
         self.mesh = dataset.mesh
@@ -121,8 +125,20 @@ class Run:
         self.epsilon = float(state["epsilon"])
         self.prior = prior_of(self.mesh, self.epsilon)
         self.log(f"prior: ν = {self.prior.poisson_ratio}, ε = {self.epsilon * 100:g} cm, λ = {self.prior.lam:g}")
+        if config.method == "res" and config.prior == GREEN_LINEAR:
+            self.log("prior of the residual: green-linear, the exact linear FEM answer as nak serves it")
         self.volumes = self.mesh.nodal_volumes.float()
         self.q = QSampler(self.mesh, self.generator) if config.method == "reg" else None
+
+    def residual_prior(self, split: Split, name: str) -> torch.Tensor:
+        """The prior +Res learns its residual to, for every sample of `split` (drawn from split `name`):
+        the Kelvinlet at the run's ε, or green-linear's field written by nak. f32 [S, N, 3]."""
+        if self.config.prior != GREEN_LINEAR:
+            return prior_fields(self.prior, self.mesh, split, batch=64)
+        if self.nak is None:
+            raise TrainingInputError(self.dataset.root, "the green-linear prior needs the nak binary (--nak)")
+        self.log(f"green-linear over the {name} split ({len(split)} samples), through nak…")
+        return served_fields(self.nak, self.dataset, name, split, GREEN_LINEAR, self.run_dir)
 
     def _start(self, model: torch.nn.Module) -> None:
         """Takes `model` for training and resumes from the run's checkpoint if there is one."""
@@ -260,12 +276,14 @@ class Trainer(Run):
 
     model: SetNet
 
-    def __init__(self, config: TrainConfig, dataset: Dataset, run_dir: Path, log: Any = print) -> None:
-        super().__init__(config, dataset, run_dir, log)
+    def __init__(
+        self, config: TrainConfig, dataset: Dataset, run_dir: Path, log: Any = print, nak: Nak | None = None
+    ) -> None:
+        super().__init__(config, dataset, run_dir, log, nak)
         residual = config.method == "res"
-        self.train_prior = prior_fields(self.prior, self.mesh, self.train) if residual else None
-        self.val_prior = prior_fields(self.prior, self.mesh, self.val) if residual else None
-        model = build(config.architecture, config.size)
+        self.train_prior = self.residual_prior(self.train, "train") if residual else None
+        self.val_prior = self.residual_prior(self.val, "val") if residual else None
+        model = build(config.architecture, config.size, self.mesh)
         self._set_statistics(model)
         positions = self.mesh.positions.float()
         rest = torch.cat([positions, torch.zeros(self.mesh.node_count, 4)], dim=1)
@@ -363,12 +381,12 @@ def served_features(mesh: Mesh, nodes: list[Any], displacements: list[Any]) -> t
     return features
 
 
-def load_trained(run_dir: Path, config: TrainConfig) -> SetNet:
+def load_trained(run_dir: Path, config: TrainConfig, mesh: Mesh) -> SetNet:
     """The best model of a finished run."""
     path = run_dir / "best.pt"
     if not path.is_file():
         raise TrainingInputError(path, "missing: train the model first")
-    model = build(config.architecture, config.size)
+    model = build(config.architecture, config.size, mesh)
     model.load_state_dict(torch.load(path, weights_only=True))
     model.eval()
     return model
