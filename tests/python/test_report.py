@@ -7,7 +7,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.text import Annotation  # noqa: E402
-from nak_training.report import place_labels  # noqa: E402
+from nak_training.report import Entry, place_labels, table  # noqa: E402
 
 
 def test_names_of_neighbouring_points_do_not_overlap() -> None:
@@ -28,3 +28,33 @@ def test_names_of_neighbouring_points_do_not_overlap() -> None:
         for b in listed[i + 1 :]:
             assert not a.overlaps(b), (a, b)
     plt.close(fig)
+
+
+def test_the_nonlinear_table_sets_nak_beside_the_papers_table_3() -> None:
+    entry = Entry(
+        name="pointnet-res-nl",
+        architecture="pointnet",
+        method="res",
+        trained_on="all",
+        epsilon=0.015,
+        metrics={"dcm_code_combined": 71.234, "dcm_code_single": 75.5},
+        regime="nonlinear",
+    )
+    linear_twin = Entry(
+        name="pointnet-res",
+        architecture="pointnet",
+        method="res",
+        trained_on="all",
+        epsilon=0.015,
+        metrics={"dcm_code_combined": 78.12},
+    )
+    baselines = {"green-linear — nonlinear": {"dcm_code_single": 33.0, "dcm_code_combined": 35.7}}
+    lines = table([entry, linear_twin], "dcm_code", baselines, with_paper=True, regime="nonlinear")
+    ours = next(line for line in lines if line.startswith("| PointNet (nak"))
+    cells = [c.strip() for c in ours.strip("|").split("|")]
+    # Multi +Res is the 8th figure (Indiv. and Comb. Base/+Res/+Reg first); the linear twin is not read.
+    assert cells[8] == "71.23" and cells.count("–") == 8
+    paper = next(line for line in lines if line.startswith("| PointNet (paper"))
+    assert "85.05" in paper and "84.75" in paper and "96.54" not in paper
+    assert any("58.88" in line for line in lines if line.startswith("| Kelvinlet (paper)"))
+    assert any(line.startswith("| green-linear — nonlinear | 33.00") for line in lines)
