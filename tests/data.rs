@@ -199,6 +199,8 @@ fn nonlinear_datagen_is_deterministic_resumable_and_shares_grasps_with_linear() 
     std::fs::remove_file(dataset::chunk_paths(&b, 1).1).unwrap();
     let resumed = datagen_box(&b, &cache, &nonlinear);
     assert!(String::from_utf8_lossy(&resumed.stdout).contains("(1 resumed)"));
+    let again = datagen_box(&b, &cache, &nonlinear);
+    assert!(String::from_utf8_lossy(&again.stdout).contains("every chunk was already complete"));
     for chunk in 0..2 {
         let (sa, sb) = (dataset::chunk_paths(&a, chunk), dataset::chunk_paths(&b, chunk));
         assert_eq!(std::fs::read(&sa.0).unwrap(), std::fs::read(&sb.0).unwrap());

@@ -159,6 +159,10 @@ pub fn run(args: DatagenArgs, mesh: &TetMesh, cache: PathBuf) -> anyhow::Result<
 /// The solver's effort in this run: time per sample over every sample attempted (what a dataset
 /// costs), iterations and factorizations over the converged ones (a failed solve reports none).
 fn print_nonlinear_tally(t: &NonlinearTally) {
+    if t.attempted == 0 {
+        println!("nonlinear: every chunk was already complete; nothing solved in this run");
+        return;
+    }
     let converged = t.attempted - t.failed;
     let per_converged = |v: usize| v as f64 / converged.max(1) as f64;
     let mut seconds = t.solve_seconds.clone();
