@@ -132,6 +132,8 @@ def test_bad_input_is_refused_naming_the_file_or_key(coarse_data: Path, tmp_path
     with pytest.raises(TrainingInputError, match=r"no complete samples in split 'train'"):
         dataset.load("train")
 
+    with pytest.raises(TrainingInputError, match=r"train_samples = -2: must be 0 \(all\) or more"):
+        parse_config(tiny_config(train_samples=-2), "x.toml")
     with pytest.raises(TrainingInputError, match=r"pod_samples = -1: must be 0 \(all\) or more"):
         parse_config(tiny_config(architecture="pod", pod_samples=-1), "x.toml")
     few = parse_config(tiny_config(architecture="pod", modes=8, pod_samples=4), "x.toml")
@@ -413,3 +415,10 @@ def test_the_mesh_gnn_carries_its_edges_and_is_served_as_onnxruntime_computes_it
         network[0] + Prior(mesh.prior[0], 0.02, mesh.prior[2]).evaluate(mesh.positions, points, u, mask)[0].numpy()
     )
     assert np.linalg.norm(served - expected) / np.linalg.norm(expected) < 1e-5
+
+
+def test_a_learning_curve_point_trains_on_samples_spread_over_both_subsets(coarse_data: Path, tmp_path: Path) -> None:
+    config = parse_config(tiny_config(train_samples=12), "tiny")
+    trainer = Trainer(config, open_dataset(coarse_data), tmp_path, log=quiet)
+    assert len(trainer.train) == 12
+    assert {s.subset for s in trainer.train.samples} == {"single", "multi"}

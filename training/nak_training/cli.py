@@ -42,6 +42,9 @@ def main(argv: list[str] | None = None) -> int:
         )
         command.add_argument("--mesh", type=Path, default=DEFAULT_MESH, help="the dataset's mesh (evaluate)")
         command.add_argument("--steps", type=int, help="override the configuration's step count")
+        command.add_argument(
+            "--train-samples", type=int, help="train on this many samples (a learning curve's point; name gets -nN)"
+        )
     report = commands.add_parser("report", help="the results table and the accuracy-latency figure")
     report.add_argument("--data", type=Path, required=True, help="the linear dataset the models were scored on")
     report.add_argument("--nonlinear-data", type=Path, help="the nonlinear dataset (Table 3 and its points)")
@@ -56,7 +59,11 @@ def main(argv: list[str] | None = None) -> int:
 
             write_report(args.data, args.models, args.nak, args.mesh, args.out, args.nonlinear_data)
             return 0
-        config = load_config(args.config, {"steps": args.steps} if args.steps else None)
+        overrides: dict[str, object] = {"steps": args.steps} if args.steps else {}
+        if args.train_samples:
+            name = load_config(args.config).name
+            overrides.update(train_samples=args.train_samples, name=f"{name}-n{args.train_samples}")
+        config = load_config(args.config, overrides)
         run(args.command, config, args)
     except TrainingInputError as e:
         print(f"error: {e}", file=sys.stderr)

@@ -50,6 +50,8 @@ class TrainConfig:
     encoder: str = "linear"  # linear (more accurate) | pooled (fewer operators, faster)
     basis_precision: str = "f16"
     form: str = "basis"
+    # Train on this many samples spread over the train split (0: all): for learning curves.
+    train_samples: int = 0
     # POD from the first this many train targets (0: all): the S × S Gram matrix of the POD bounds how
     # many samples it can take, not how many the encoder may learn from.
     pod_samples: int = 0
@@ -105,6 +107,8 @@ def parse_config(values: dict[str, Any], origin: str) -> TrainConfig:
     for key in ("steps", "batch", "query_nodes", "val_every", "val_samples", "threads", "modes", "width"):
         if int(getattr(config, key)) < 1:
             raise TrainingInputError(origin, f"{key} = {getattr(config, key)!r}: must be at least 1")
+    if config.train_samples < 0:
+        raise TrainingInputError(origin, f"train_samples = {config.train_samples!r}: must be 0 (all) or more")
     if config.pod_samples < 0:
         raise TrainingInputError(origin, f"pod_samples = {config.pod_samples!r}: must be 0 (all) or more")
     return config

@@ -108,6 +108,8 @@ class Run:
         self.mesh = dataset.mesh
         self.generator = torch.Generator().manual_seed(config.seed)
         self.train = dataset.load("train", config.subsets)
+        if config.train_samples:
+            self.train = spread(self.train, config.train_samples)
         self.val = spread(dataset.load("val", config.subsets), config.val_samples)
         self.log(
             f"{config.name}: {config.architecture} ({config.size}) {config.method}, {len(self.train)} train / "
