@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.text import Annotation  # noqa: E402
-from nak_training.report import Entry, place_labels, table  # noqa: E402
+from nak_training.report import Entry, learning_curve, place_labels, table  # noqa: E402
 
 
 def test_names_of_neighbouring_points_do_not_overlap() -> None:
@@ -58,3 +60,19 @@ def test_the_nonlinear_table_sets_nak_beside_the_papers_table_3() -> None:
     assert "85.05" in paper and "84.75" in paper and "96.54" not in paper
     assert any("58.88" in line for line in lines if line.startswith("| Kelvinlet (paper)"))
     assert any(line.startswith("| green-linear — nonlinear | 33.00") for line in lines)
+
+
+def test_the_learning_curve_orders_a_configurations_sizes_and_skips_other_models(tmp_path: Path) -> None:
+    def entry(name: str, samples: int, dcm: float) -> Entry:
+        return Entry(name, "pod", "res", "all", 0.01, {"dcm_combined": dcm}, "nonlinear", train_samples=samples)
+
+    entries = [
+        entry("pod-res-nl-n800", 800, 70.0),
+        entry("pod-res-nl", 1577, 75.5),
+        entry("pod-res-nl-n200", 200, 60.25),
+    ]
+    entries.append(entry("pod-base-nl", 1577, 71.0))
+    lines = learning_curve(entries, tmp_path / "curve.png")
+    assert lines[2:] == ["| `pod-res-nl` | 200 → 60.25, 800 → 70.00, 1,577 → 75.50 |"]
+    assert (tmp_path / "curve.png").is_file()
+    assert learning_curve([entry("pod-base-nl", 1577, 71.0)], tmp_path / "none.png") == []

@@ -71,6 +71,7 @@ class Entry:
     metrics: dict[str, Any]
     regime: str = "linear"
     prior: str = "kelvinlet"
+    train_samples: int = 0
 
 
 def read_models(roots: list[Path]) -> list[Entry]:
@@ -90,6 +91,7 @@ def read_models(roots: list[Path]) -> list[Entry]:
                 metrics=manifest["metrics"],
                 regime=manifest["model"]["regime"],
                 prior=manifest["prior"].get("model", "kelvinlet"),
+                train_samples=int(provenance.get("train_samples", 0)),
             )
         )
     return entries
@@ -158,7 +160,7 @@ def figure(entries: list[Entry], baselines: dict[str, dict[str, Any]], path: Pat
     fig, ax = plt.subplots(figsize=(8.5, 5.5))
     names: list[tuple[str, float, float]] = []
     for e in entries:
-        if e.trained_on != "all":
+        if e.trained_on != "all" or curve_point(e.name):
             continue
         x, y = e.metrics.get("total_ms_p50"), e.metrics.get("dcm_code_combined")
         if x is None or y is None:
@@ -257,6 +259,36 @@ def save(
     plt.close(fig)
 
 
+def curve_point(name: str) -> bool:
+    """Whether a model is a learning curve's point (`<config>-nN`), trained on part of the data."""
+    return name.rpartition("-n")[2].isdigit()
+
+
+def learning_curve(entries: list[Entry], path: Path) -> list[str]:
+    """Test DCM against the number of training samples for configurations trained at several sizes
+    (`--train-samples N` names them `<config>-nN`); figure and table lines, empty without any."""
+    curves: dict[str, list[Entry]] = {}
+    for e in entries:
+        if curve_point(e.name):
+            curves.setdefault(e.name.rpartition("-n")[0], [])
+    for base in curves:
+        curves[base] = sorted(
+            (e for e in entries if e.name == base or e.name.startswith(f"{base}-n")), key=lambda e: e.train_samples
+        )
+    if not curves:
+        return []
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    lines = ["| configuration | training samples → test DCM (volume form) |", "|---|---|"]
+    for base, points in curves.items():
+        xs, ys = [e.train_samples for e in points], [e.metrics["dcm_combined"] for e in points]
+        ax.plot(xs, ys, marker="o", label=base)
+        lines.append(f"| `{base}` | " + ", ".join(f"{x:,} → {y:.2f}" for x, y in zip(xs, ys, strict=True)) + " |")
+    ax.set_xscale("log", base=2)
+    labels = ("training samples", "DCM (%), volume form, test split, all samples", "Accuracy against training data")
+    save(fig, ax, path, labels, legend_size=7)
+    return lines
+
+
 def ceiling_figure(entries: list[Entry], path: Path) -> list[str]:
     """The POD bases' own ceiling against M (figure and table lines); empty without a POD model."""
     curves: dict[str, dict[int, float]] = {}
@@ -310,6 +342,7 @@ def write_report(
     out.mkdir(parents=True, exist_ok=True)
     figure(entries, {**linear, **nonlinear}, out / "accuracy-latency.png")
     ceiling = ceiling_figure(entries, out / "basis-ceiling.png")
+    curve = learning_curve(entries, out / "learning-curve.png")
     rows = [
         "| model | regime | method | prior | trained on | ε (cm) | DCM single | DCM multi | DCM all | code form all | "
         "network ms p50 | total ms p50 |",
@@ -388,6 +421,18 @@ def write_report(
             *ceiling,
             "",
             "![POD ceiling against M](models/basis-ceiling.png)",
+            "",
+        ]
+    if curve:
+        text += [
+            "## Accuracy against training data",
+            "",
+            "The same configuration trained on fewer samples spread over the train split",
+            "(`scripts/nak-train all --config C --train-samples N`; models in `table3/curve/`):",
+            "",
+            *curve,
+            "",
+            "![DCM against training samples](models/learning-curve.png)",
             "",
         ]
     (out.parent / "models.md").write_text("\n".join(text))
