@@ -33,23 +33,8 @@ def test_names_of_neighbouring_points_do_not_overlap() -> None:
 
 
 def test_the_nonlinear_table_sets_nak_beside_the_papers_table_3() -> None:
-    entry = Entry(
-        name="pointnet-res-nl",
-        architecture="pointnet",
-        method="res",
-        trained_on="all",
-        epsilon=0.015,
-        metrics={"dcm_code_combined": 71.234, "dcm_code_single": 75.5},
-        regime="nonlinear",
-    )
-    linear_twin = Entry(
-        name="pointnet-res",
-        architecture="pointnet",
-        method="res",
-        trained_on="all",
-        epsilon=0.015,
-        metrics={"dcm_code_combined": 78.12},
-    )
+    entry = Entry("pointnet-res-nl", "pointnet", "res", "all", 0.015, {"dcm_code_combined": 71.234}, "nonlinear")
+    linear_twin = Entry("pointnet-res", "pointnet", "res", "all", 0.015, {"dcm_code_combined": 78.12})
     baselines = {"green-linear — nonlinear": {"dcm_code_single": 33.0, "dcm_code_combined": 35.7}}
     lines = table([entry, linear_twin], "dcm_code", baselines, with_paper=True, regime="nonlinear")
     ours = next(line for line in lines if line.startswith("| PointNet (nak"))

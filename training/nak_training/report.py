@@ -138,6 +138,14 @@ def table(
         if all(c == "–" for c in cells):
             continue
         lines.append(f"| {label} (nak{', cpu size' if arch in SIZED else ''}) | " + " | ".join(cells) + " |")
+        # +Res on the exact linear answer instead of the Kelvinlet (configs `<arch>-res-gl…`).
+        on_green = [
+            cell(entries, arch, "res-gl", trained, subset, key, regime) if m == "res" else ""
+            for trained, subset, _ in COLUMNS
+            for m in METHODS
+        ]
+        if any(c not in ("", "–") for c in on_green):
+            lines.append(f"| {label}, +Res on green-linear (nak) | " + " | ".join(on_green) + " |")
         if with_paper and arch in paper_rows:
             paper = [f"{paper_rows[arch][trained][i]:.2f}" for trained, _, _ in COLUMNS for i in range(3)]
             lines.append(f"| {label} (paper, GPU) | " + " | ".join(paper) + " |")
@@ -428,7 +436,7 @@ def write_report(
             "## Accuracy against training data",
             "",
             "The same configuration trained on fewer samples spread over the train split",
-            "(`scripts/nak-train all --config C --train-samples N`; models in `table3/curve/`):",
+            "(`scripts/nak-train all --config C --train-samples N`; their manifests in `table3/curve/`):",
             "",
             *curve,
             "",
