@@ -4,8 +4,8 @@
 
 use std::sync::Arc;
 
-use crate::engine::{ModelError, Target};
-use crate::fem::GreenLinear;
+use crate::engine::{KelvinletModel, ModelError, Target};
+use crate::fem::{GreenLinear, GreenLinearModel};
 use crate::prior::{InteractionPoints, Kelvinlet, Workspace};
 
 pub enum ModelPrior {
@@ -41,10 +41,11 @@ impl ModelPrior {
         }
     }
 
+    /// The served model this prior is, by name.
     pub fn name(&self) -> &'static str {
         match self {
-            ModelPrior::Kelvinlet(_) => "kelvinlet",
-            ModelPrior::GreenLinear(_) => "green-linear",
+            ModelPrior::Kelvinlet(_) => KelvinletModel::NAME,
+            ModelPrior::GreenLinear(_) => GreenLinearModel::NAME,
         }
     }
 }
