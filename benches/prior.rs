@@ -44,12 +44,7 @@ fn prior(c: &mut Criterion) {
             rayon::scope(|_| b.iter(|| kelvinlet.evaluate(c, &cloud, &mut out)))
         });
         group.bench_with_input(BenchmarkId::new("solve+field", k), &p, |b, p| {
-            rayon::scope(|_| {
-                b.iter(|| {
-                    kelvinlet.solve(p, &mut ws).expect("SPD");
-                    kelvinlet.evaluate(&ws.coefficients, &cloud, &mut out);
-                })
-            })
+            rayon::scope(|_| b.iter(|| kelvinlet.solve_and_evaluate(p, &mut ws, &cloud, &mut out).expect("SPD")))
         });
     }
     group.finish();

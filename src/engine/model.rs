@@ -210,9 +210,8 @@ impl DeformationModel for KelvinletModel {
         timing: &mut StageTiming,
     ) -> Result<(), ModelError> {
         let start = std::time::Instant::now();
-        self.prior.solve(points, workspace)?;
         self.prior
-            .evaluate(&workspace.coefficients, target.cloud, out.displacements);
+            .solve_and_evaluate(points, workspace, target.cloud, out.displacements)?;
         self.point_loads(points, &workspace.coefficients, out.forces);
         timing.prior_us = start.elapsed().as_secs_f32() * 1e6;
         Ok(())

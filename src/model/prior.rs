@@ -24,8 +24,7 @@ impl ModelPrior {
     ) -> Result<(), ModelError> {
         match self {
             ModelPrior::Kelvinlet(kelvinlet) => {
-                kelvinlet.solve(points, workspace)?;
-                kelvinlet.evaluate(&workspace.coefficients, target.cloud, out);
+                kelvinlet.solve_and_evaluate(points, workspace, target.cloud, out)?;
                 Ok(())
             }
             // The grasp forces green-linear also gives are not the network's: dropped.

@@ -5,6 +5,7 @@
 //! the nodes in f32 by a vectorized, multi-core kernel ([`kernel`]).
 
 pub mod backend;
+mod dense;
 pub mod gpu;
 pub mod kernel;
 pub mod solve;

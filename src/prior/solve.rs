@@ -1,19 +1,16 @@
 //! The coefficient solve `(ΓᵀΓ + λI) k = Γᵀu` for K interaction points, in f64.
 //!
 //! The 3K×3K system is small (K ≈ 20 for two graspers) and symmetric positive definite for λ > 0.
-//! Γ is symmetric too (`Γ(r) = Γ(−r)`, each block symmetric), so each block is evaluated once,
-//! only the lower triangle of `ΓᵀΓ = ΓΓ` is formed, and faer factorizes it in place: about half
-//! the work of a general product and solve. Buffers live in a [`Workspace`], so a request allocates nothing
+//! Γ is symmetric too (`Γ(r) = Γ(−r)`, each block symmetric), so `ΓᵀΓ = ΓΓ`, of which only the
+//! lower triangle is formed, and it is factorized in place by the small dense kernels of
+//! [`super::dense`]. Unknowns are ordered by component (all x, then all y, then all z): a column
+//! of Γ is then three runs over the points, which vectorize, where point-major order would
+//! interleave them. Buffers live in a [`Workspace`], so a request allocates nothing
 //! once the workspace has grown to the largest K seen.
 
-use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
-use faer::linalg::cholesky::llt::factor::{
-    LltError, LltParams, LltRegularization, cholesky_in_place, cholesky_in_place_scratch,
-};
-use faer::linalg::cholesky::llt::solve::solve_in_place_with_conj;
-use faer::linalg::matmul::triangular::{BlockStructure, matmul};
-use faer::{Accum, Conj, MatMut, MatRef, Par, Spec};
+use multiversion::multiversion;
 
+use super::dense::{Dense, cholesky_lower, cholesky_solve_lower, gram_lower, symmetric_times};
 use super::{InteractionPoints, Kelvinlet};
 
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -59,47 +56,13 @@ impl Coefficients {
 /// Reusable buffers for one request at a time.
 #[derive(Debug, Default)]
 pub struct Workspace {
-    gamma: Vec<f64>,
-    normal: Vec<f64>,
+    points: PointColumns,
+    gamma: Dense,
+    normal: Dense,
+    displacements: Vec<f64>,
     rhs: Vec<f64>,
-    scratch: Scratch,
+    inverse_pivots: Vec<f64>,
     pub coefficients: Coefficients,
-}
-
-/// faer's scratch space, and the largest request it was made for.
-#[derive(Default)]
-struct Scratch(Option<(StackReq, MemBuffer)>);
-
-impl std::fmt::Debug for Scratch {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_tuple("Scratch")
-            .field(&self.0.as_ref().map(|(req, _)| req))
-            .finish()
-    }
-}
-
-impl Scratch {
-    /// Room for factorizing an `n × n` system, grown when too small.
-    fn stack(&mut self, n: usize) -> &mut MemStack {
-        let needed = cholesky_in_place_scratch::<f64>(n, Par::Seq, default_params());
-        let fits = self.0.as_ref().is_some_and(|(held, _)| held.or(needed) == *held);
-        if !fits {
-            self.0 = None;
-        }
-        let (_, buffer) = self.0.get_or_insert_with(|| (needed, MemBuffer::new(needed)));
-        MemStack::new(buffer)
-    }
-}
-
-fn default_params() -> Spec<LltParams, f64> {
-    Spec::default()
-}
-
-/// Views `buffer`, resized to `rows × cols` values, as a column-major matrix; old values stay
-/// (every caller overwrites what it reads).
-fn matrix(buffer: &mut Vec<f64>, rows: usize, cols: usize) -> MatMut<'_, f64> {
-    buffer.resize(rows * cols, 0.0);
-    MatMut::from_column_major_slice_mut(buffer, rows, cols)
 }
 
 impl Kelvinlet {
@@ -115,55 +78,26 @@ impl Kelvinlet {
             self.push_coefficient(ws, points.positions[0], points.displacements[0]);
             return Ok(());
         }
-        // Block (i, j) = Γ(x_i − x_j) = block (j, i): each is evaluated once and written to both.
-        let mut gamma = matrix(&mut ws.gamma, n, n);
-        for j in 0..k {
-            for i in j..k {
-                let r = std::array::from_fn(|c| points.positions[i][c] - points.positions[j][c]);
-                for (a, row) in self.response(r).iter().enumerate() {
-                    for (b, v) in row.iter().enumerate() {
-                        gamma[(3 * i + a, 3 * j + b)] = *v;
-                        gamma[(3 * j + b, 3 * i + a)] = *v;
-                    }
-                }
-            }
-        }
-        let gamma = MatRef::from_column_major_slice(&ws.gamma, n, n);
-        let mut normal = matrix(&mut ws.normal, n, n);
+        let gamma = &mut ws.gamma;
+        ws.points.load(points);
+        assemble(self, &mut ws.points, gamma);
         // Lower triangle of ΓΓ + λI (ΓᵀΓ = ΓΓ, Γ symmetric); the upper one is never read.
-        matmul(
-            normal.as_mut(),
-            BlockStructure::TriangularLower,
-            Accum::Replace,
-            gamma,
-            BlockStructure::Rectangular,
-            gamma,
-            BlockStructure::Rectangular,
-            1.0,
-            Par::Seq,
-        );
+        gram_lower(gamma, &mut ws.normal);
         for d in 0..n {
-            normal[(d, d)] += self.params.lambda;
+            ws.normal.set(d, d, ws.normal.get(d, d) + self.params.lambda);
         }
-        let mut rhs = matrix(&mut ws.rhs, n, 1);
-        let u = MatRef::from_column_major_slice(points.displacements.as_flattened(), n, 1);
-        faer::linalg::matmul::matmul(rhs.as_mut(), Accum::Replace, gamma, u, 1.0, Par::Seq);
-        let stack = ws.scratch.stack(n);
-        let mut normal = MatMut::from_column_major_slice_mut(&mut ws.normal, n, n);
-        match cholesky_in_place(
-            normal.as_mut(),
-            LltRegularization::default(),
-            Par::Seq,
-            stack,
-            default_params(),
-        ) {
-            Ok(_) => {}
-            Err(LltError::NonPositivePivot { .. }) => return Err(SolveError::NotPositiveDefinite { points: k }),
+        // u by component, like Γ's rows.
+        ws.displacements.clear();
+        for c in 0..3 {
+            ws.displacements.extend(points.displacements.iter().map(|u| u[c]));
         }
-        let rhs = MatMut::from_column_major_slice_mut(&mut ws.rhs, n, 1);
-        solve_in_place_with_conj(normal.as_ref(), Conj::No, rhs, Par::Seq, MemStack::new(&mut []));
+        ws.rhs.resize(n, 0.0);
+        symmetric_times(gamma, &ws.displacements, &mut ws.rhs);
+        cholesky_lower(&mut ws.normal, &mut ws.inverse_pivots)
+            .map_err(|_| SolveError::NotPositiveDefinite { points: k })?;
+        cholesky_solve_lower(&ws.normal, &ws.inverse_pivots, &mut ws.rhs);
         for j in 0..k {
-            let kj = [ws.rhs[3 * j], ws.rhs[3 * j + 1], ws.rhs[3 * j + 2]];
+            let kj = [ws.rhs[j], ws.rhs[k + j], ws.rhs[2 * k + j]];
             self.push_coefficient(ws, points.positions[j], kj);
         }
         Ok(())
@@ -177,5 +111,74 @@ impl Kelvinlet {
         c.kx.push((self.scale * k[0]) as f32);
         c.ky.push((self.scale * k[1]) as f32);
         c.kz.push((self.scale * k[2]) as f32);
+    }
+}
+
+/// The interaction points by coordinate, and one column's worth of per-point terms.
+#[derive(Debug, Default)]
+struct PointColumns {
+    position: [Vec<f64>; 3],
+    offset: [Vec<f64>; 3],
+    diagonal: Vec<f64>,
+    along: Vec<f64>,
+}
+
+impl PointColumns {
+    fn load(&mut self, points: &InteractionPoints) {
+        let k = points.len();
+        for (c, coordinate) in self.position.iter_mut().enumerate() {
+            coordinate.clear();
+            coordinate.extend(points.positions.iter().map(|p| p[c]));
+        }
+        for v in self.offset.iter_mut().chain([&mut self.diagonal, &mut self.along]) {
+            v.resize(k, 0.0);
+        }
+    }
+}
+
+/// Fills `gamma` (component-major, `3K × 3K`) with `Γ(x_i − x_j)`: the column of point `j`,
+/// component `b`, holds `s·[(a/r_ε + b/r_ε³) δ_ab + r_a r_b / r_ε³]` at the row of point `i`,
+/// component `a` ([`Kelvinlet::response`] entry by entry, in runs over `i`).
+#[multiversion(targets("x86_64+avx512f+avx512vl+avx2+fma", "x86_64+avx2+fma", "aarch64+neon"))]
+fn assemble(kelvinlet: &Kelvinlet, p: &mut PointColumns, gamma: &mut Dense) {
+    let k = p.diagonal.len();
+    gamma.reset(3 * k);
+    let Kelvinlet {
+        scale,
+        a,
+        b,
+        epsilon_sq,
+        ..
+    } = *kelvinlet;
+    for j in 0..k {
+        for (c, offset) in p.offset.iter_mut().enumerate() {
+            let (positions, at) = (&p.position[c], p.position[c][j]);
+            for (o, x) in offset.iter_mut().zip(positions) {
+                *o = x - at;
+            }
+        }
+        let [rx, ry, rz] = &p.offset;
+        for (((d, along), (x, y)), z) in p.diagonal.iter_mut().zip(&mut p.along).zip(rx.iter().zip(ry)).zip(rz) {
+            let r_eps = (x * x + y * y + z * z + epsilon_sq).sqrt();
+            let inverse = 1.0 / r_eps;
+            let inverse_cubed = inverse * inverse * inverse;
+            *d = scale * (a * inverse + b * inverse_cubed);
+            *along = scale * inverse_cubed;
+        }
+        for column_component in 0..3 {
+            let column = gamma.entries_mut(column_component * k + j);
+            let r_b = &p.offset[column_component];
+            for (row_component, rows) in column.chunks_exact_mut(k).enumerate() {
+                let r_a = &p.offset[row_component];
+                for (((v, along), x), y) in rows.iter_mut().zip(&p.along).zip(r_a).zip(r_b) {
+                    *v = along * x * y;
+                }
+                if row_component == column_component {
+                    for (v, d) in rows.iter_mut().zip(&p.diagonal) {
+                        *v += d;
+                    }
+                }
+            }
+        }
     }
 }
