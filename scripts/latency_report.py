@@ -15,6 +15,7 @@ import os
 import platform
 import subprocess
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -60,9 +61,10 @@ LOADS = [
 ]
 
 
-def nak_bench(binary: Path, load: Load, out: Path, seconds: int) -> dict[str, Any]:
+def nak_bench(binary: Path, load: Load, out: Path, seconds: int, prefix: list[str] | None = None) -> dict[str, Any]:
     subprocess.run(
-        [str(binary), "bench", "--target", f"http://127.0.0.1:{PORT}", "--duration", f"{seconds}s", "--seed", "1"]
+        (prefix or [])
+        + [str(binary), "bench", "--target", f"http://127.0.0.1:{PORT}", "--duration", f"{seconds}s", "--seed", "1"]
         + load.bench
         + ["--output", str(out)],
         check=True,
@@ -90,6 +92,38 @@ def python_client(load: Load, out: Path, seconds: int) -> dict[str, Any]:
     return result
 
 
+def wake_round_trip_us(cpu_a: int, cpu_b: int, rounds: int = 20_000) -> float:
+    """Mean round trip (µs) of one byte passed back and forth through two pipes between
+    two processes pinned to `cpu_a` and `cpu_b`: each trip wakes the other side twice. On one CPU
+    a wake-up is a context switch; across CPUs it is a wake-up of an idle CPU, the cost every
+    request pays when its client and server sleep on different cores."""
+    to_child, from_parent = os.pipe()
+    to_parent, from_child = os.pipe()
+    warmup = 500
+    pid = os.fork()
+    if pid == 0:
+        os.sched_setaffinity(0, {cpu_b})
+        for _ in range(warmup + rounds):
+            os.read(to_child, 1)
+            os.write(from_child, b"x")
+        os._exit(0)
+    allowed = os.sched_getaffinity(0)
+    os.sched_setaffinity(0, {cpu_a})
+    try:
+        for i in range(warmup + rounds):
+            if i == warmup:
+                start = time.perf_counter_ns()
+            os.write(from_parent, b"x")
+            os.read(to_parent, 1)
+        elapsed = time.perf_counter_ns() - start
+    finally:
+        os.sched_setaffinity(0, allowed)
+        os.waitpid(pid, 0)
+        for fd in (to_child, from_parent, to_parent, from_child):
+            os.close(fd)
+    return elapsed / rounds / 1e3
+
+
 def measure(args: argparse.Namespace) -> None:
     data: Path = args.data
     data.mkdir(parents=True, exist_ok=True)
@@ -114,6 +148,19 @@ def measure(args: argparse.Namespace) -> None:
         finally:
             server.terminate()
             server.wait(timeout=30)
+    # The after server and nak bench both on CPU 0: no wake-up of an idle CPU on either side.
+    pin = ["taskset", "-c", "0"]
+    command = pin + [str(args.after), "serve", "--listen", f"127.0.0.1:{PORT}", "--log-format", "json"]
+    server = local_server.start(command, data / "server-pinned.log")
+    try:
+        print("after, one CPU: unary, closed loop", flush=True)
+        results["after/bench-one-cpu/unary-closed"] = nak_bench(
+            args.after, LOADS[1], data / "one-cpu-unary-closed.json", args.seconds, prefix=pin
+        )
+    finally:
+        server.terminate()
+        server.wait(timeout=30)
+    results["wake_round_trip_us"] = {"same_cpu": wake_round_trip_us(0, 0), "across_cpus": wake_round_trip_us(0, 1)}
     (data / "results.json").write_text(json.dumps(results, indent=2) + "\n")
 
 
@@ -150,6 +197,12 @@ def render(args: argparse.Namespace) -> None:
     )
     old = results["after/old-bench/unary-1k"]
     new = results["after/bench/unary-1k"]
+    wake = results["wake_round_trip_us"]
+    closed, one_cpu = results["after/bench/unary-closed"], results["after/bench-one-cpu/unary-closed"]
+
+    def gap(r: dict[str, Any]) -> float:
+        return float(r["latency_us"]["p50"] - r["server_us"]["p50"])
+
     table = "\n".join(
         f"| {label} | {client} | " + " | ".join(f"{v:.0f}" for v in cells) + " |" for label, client, cells in rows
     )
@@ -221,6 +274,19 @@ p50 **{old["latency_us"]["p50"]:.0f} µs** with the before generator (a `nanosle
 request to the runtime), **{new["latency_us"]["p50"]:.0f} µs** with the after one (a timerfd on the
 runtime's own thread). The after generator reports its delay from due time to hand-over to the gRPC
 client: p50 **{new["generator_us"]["p50"]:.0f} µs**, p99 **{new["generator_us"]["p99"]:.0f} µs**.
+
+## The floor: waking an idle CPU
+
+One byte passed back and forth between two processes through pipes (Python, `wake_round_trip_us` in
+scripts/latency_report.py) takes **{wake["same_cpu"]:.1f} µs** a round trip when both are on one CPU and
+**{wake["across_cpus"]:.1f} µs** when they are on different CPUs: about
+**{(wake["across_cpus"] - wake["same_cpu"]) / 2:.0f} µs** for each wake-up of a CPU that had gone idle (this
+virtual machine's guest halt-polling is off, so an idle vCPU halts and a wake-up goes through the
+hypervisor). A unary call whose client and server wait on different CPUs pays two such wake-ups: the
+server's on the request, the client's on the answer. With the after server and `nak bench` both pinned to
+CPU 0 (`taskset -c 0`), unary closed loop on one connection: p50 **{one_cpu["latency_us"]["p50"]:.0f} µs**,
+client − server **{gap(one_cpu):.0f} µs**, against **{gap(closed):.0f} µs** on two CPUs above; what is
+left is the work itself (HTTP/2, the 116 kB answer through loopback TCP, the codecs), done on one CPU.
 """
     )
 
