@@ -25,6 +25,10 @@ const PARALLEL_MIN_NODES: usize = 4096;
 /// machine, worth paying only for fields several times that long (node–point pairs).
 const HANDOVER_MIN_TERMS: usize = 1 << 21;
 
+/// The most interaction points whose solve (about 40 µs at 32 points) ends while a thread woken at
+/// its start is still looking for work.
+const PREWAKE_MAX_POINTS: usize = 32;
+
 /// Positions of the nodes a field is evaluated at: f32, structure of arrays, in whole blocks (the
 /// last one padded with zeros, whose results are never written out).
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -114,7 +118,8 @@ impl Kelvinlet {
     /// thread is woken before the solve rather than after it: a sleeping thread takes about as long
     /// to start as the solve itself (20–30 µs on a small virtual machine: `cargo bench --bench
     /// prior`, `solve+field` against `solve` and `field` apart), and rayon keeps a woken thread
-    /// looking for work for longer than that before it sleeps again.
+    /// looking for work for longer than that before it sleeps again. A longer solve would outlast that
+    /// search, and the thread would have to be woken twice.
     pub fn solve_and_evaluate(
         &self,
         points: &InteractionPoints,
@@ -123,7 +128,8 @@ impl Kelvinlet {
         out: &mut [f32],
     ) -> Result<(), SolveError> {
         let on_cpu = cloud.resident.is_none();
-        if on_cpu && cloud.len >= PARALLEL_MIN_NODES && rayon::current_thread_index().is_some() {
+        let short_solve = points.len() <= PREWAKE_MAX_POINTS;
+        if short_solve && on_cpu && cloud.len >= PARALLEL_MIN_NODES && rayon::current_thread_index().is_some() {
             rayon::spawn(|| {});
         }
         self.solve(points, workspace)?;
