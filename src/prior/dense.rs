@@ -1,18 +1,18 @@
 //! Small dense symmetric kernels for the coefficient solve: the Gram matrix of a symmetric matrix,
 //! its Cholesky factor, and the two triangular solves, all in f64.
 //!
-//! Why not faer: at the sizes a request brings (3K = 30…192) its general, recursive kernels spend
-//! most of their time choosing paths. On a 2-vCPU Xeon (AVX-512, 44 GFMA/s f64 per core) a 60 × 60
-//! Cholesky took 10 µs in faer 0.24 (6.9 µs with tuned block sizes) and 11 µs in nalgebra 0.34, for
-//! 36,000 FMAs. Here the O(n³) loops hold a 16-row × 4-column block of the output in registers
+//! Why not faer: at the sizes a request brings (3K = 30…150) its general, recursive kernels spend
+//! most of their time choosing paths: the K = 20 solve (60 unknowns, about 144,000 FMAs) took
+//! 22.7 µs with faer 0.24 and takes 13.5 µs with these (`cargo bench --bench prior` at commit 22d1888
+//! and after, 2-vCPU Xeon with AVX-512). Here the O(n³) loops hold a 16-row × 4-column block of the output in registers
 //! while the columns it depends on stream past: each loaded chunk feeds four FMAs, eight
 //! independent sums hide the FMA latency, and no horizontal sums or store-to-load chains sit in
 //! the inner loop. The functions are compiled for AVX-512 and AVX2 and picked at run time, like the
 //! field kernel.
 //!
 //! Past [`LARGE`] unknowns the whole matrix no longer fits in L1, these kernels stream it from L2,
-//! and faer's cache-blocked ones win again (K = 64, 192 unknowns: 250 µs with faer against 320 µs
-//! here; K = 20: 23 µs against 13.6 µs), so the two public entry points hand large systems to faer.
+//! and faer's cache-blocked ones win again (K = 64, 192 unknowns: 245 µs with faer against 320 µs
+//! here), so the two public entry points hand large systems to faer.
 //!
 //! Storage: [`Dense`] matrices are column-major and padded with zero rows and columns to a
 //! multiple of [`LANES`], which every kernel keeps zero, so no loop needs a tail.
