@@ -3,7 +3,7 @@
 //!
 //! Why not faer: at the sizes a request brings (3K = 30…150) its general, recursive kernels spend
 //! most of their time choosing paths: the K = 20 solve (60 unknowns, about 144,000 FMAs) took
-//! 22.7 µs with faer 0.24 and takes 13.5 µs with these (`cargo bench --bench prior` at commit 22d1888
+//! 22.7 µs with faer 0.24 and takes 12 µs with these (`cargo bench --bench prior` at commit 22d1888
 //! and after, 2-vCPU Xeon with AVX-512). Here the O(n³) loops hold a 16-row × 4-column block of the output in registers
 //! while the columns it depends on stream past: each loaded chunk feeds four FMAs, eight
 //! independent sums hide the FMA latency, and no horizontal sums or store-to-load chains sit in
@@ -52,10 +52,12 @@ impl Dense {
         }
     }
 
-    /// The `n` entries of column `col` (without its padding).
-    pub fn entries_mut(&mut self, col: usize) -> &mut [f64] {
+    /// The `n` entries (without padding) of columns `first`, `first + step` and `first + 2 step`.
+    pub fn strided_columns_mut(&mut self, first: usize, step: usize) -> [&mut [f64]; 3] {
         let (n, stride) = (self.n, self.stride);
-        &mut self.values[col * stride..col * stride + n]
+        let (head, rest) = self.values[first * stride..].split_at_mut(step * stride);
+        let (middle, last) = rest.split_at_mut(step * stride);
+        [&mut head[..n], &mut middle[..n], &mut last[..n]]
     }
 
     pub fn set(&mut self, row: usize, col: usize, value: f64) {
@@ -203,12 +205,17 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
     ((s0 + s4) + (s1 + s5)) + ((s2 + s6) + (s3 + s7)) + tail
 }
 
-/// `G u` for a symmetric `g` into `out` (`n` values): entry `i` is column `i` · `u`.
+/// `G u` into `out` (`n` values), as `Σ_l G[:, l] u_l`: whole columns scaled and added, each row
+/// independent of the others, where one dot product per row would end each in a chain of
+/// dependent additions.
 #[multiversion(targets("x86_64+avx512f+avx512vl+avx2+fma", "x86_64+avx2+fma", "aarch64+neon"))]
 pub fn symmetric_times(g: &Dense, u: &[f64], out: &mut [f64]) {
-    let n = g.n;
-    for (i, o) in out[..n].iter_mut().enumerate() {
-        *o = dot(&g.column(i)[..n], &u[..n]);
+    let out = &mut out[..g.n];
+    out.fill(0.0);
+    for (l, &scale) in u[..g.n].iter().enumerate() {
+        for (o, v) in out.iter_mut().zip(&g.column(l)[..g.n]) {
+            *o = v.mul_add(scale, *o);
+        }
     }
 }
 

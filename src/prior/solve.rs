@@ -80,7 +80,7 @@ impl Kelvinlet {
         }
         let gamma = &mut ws.gamma;
         ws.points.load(points);
-        assemble(self, &mut ws.points, gamma);
+        assemble(self, &ws.points, gamma);
         // Lower triangle of ΓΓ + λI (ΓᵀΓ = ΓΓ, Γ symmetric); the upper one is never read.
         gram_lower(gamma, &mut ws.normal);
         for d in 0..n {
@@ -114,34 +114,29 @@ impl Kelvinlet {
     }
 }
 
-/// The interaction points by coordinate, and one column's worth of per-point terms.
+/// The interaction points by coordinate.
 #[derive(Debug, Default)]
 struct PointColumns {
     position: [Vec<f64>; 3],
-    offset: [Vec<f64>; 3],
-    diagonal: Vec<f64>,
-    along: Vec<f64>,
 }
 
 impl PointColumns {
     fn load(&mut self, points: &InteractionPoints) {
-        let k = points.len();
         for (c, coordinate) in self.position.iter_mut().enumerate() {
             coordinate.clear();
             coordinate.extend(points.positions.iter().map(|p| p[c]));
-        }
-        for v in self.offset.iter_mut().chain([&mut self.diagonal, &mut self.along]) {
-            v.resize(k, 0.0);
         }
     }
 }
 
 /// Fills `gamma` (component-major, `3K × 3K`) with `Γ(x_i − x_j)`: the column of point `j`,
 /// component `b`, holds `s·[(a/r_ε + b/r_ε³) δ_ab + r_a r_b / r_ε³]` at the row of point `i`,
-/// component `a` ([`Kelvinlet::response`] entry by entry, in runs over `i`).
+/// component `a` ([`Kelvinlet::response`] entry by entry). Point `j`'s three columns are written in
+/// one pass over the points, nine runs at once.
 #[multiversion(targets("x86_64+avx512f+avx512vl+avx2+fma", "x86_64+avx2+fma", "aarch64+neon"))]
-fn assemble(kelvinlet: &Kelvinlet, p: &mut PointColumns, gamma: &mut Dense) {
-    let k = p.diagonal.len();
+fn assemble(kelvinlet: &Kelvinlet, p: &PointColumns, gamma: &mut Dense) {
+    let [px, py, pz] = &p.position;
+    let k = px.len();
     gamma.reset(3 * k);
     let Kelvinlet {
         scale,
@@ -150,35 +145,37 @@ fn assemble(kelvinlet: &Kelvinlet, p: &mut PointColumns, gamma: &mut Dense) {
         epsilon_sq,
         ..
     } = *kelvinlet;
+    let (px, py, pz) = (&px[..k], &py[..k], &pz[..k]);
     for j in 0..k {
-        for (c, offset) in p.offset.iter_mut().enumerate() {
-            let (positions, at) = (&p.position[c], p.position[c][j]);
-            for (o, x) in offset.iter_mut().zip(positions) {
-                *o = x - at;
-            }
-        }
-        let [rx, ry, rz] = &p.offset;
-        for (((d, along), (x, y)), z) in p.diagonal.iter_mut().zip(&mut p.along).zip(rx.iter().zip(ry)).zip(rz) {
-            let r_eps = (x * x + y * y + z * z + epsilon_sq).sqrt();
-            let inverse = 1.0 / r_eps;
+        let [x_column, y_column, z_column] = gamma.strided_columns_mut(j, k);
+        let [xx, yx, zx] = segments(x_column, k);
+        let [xy, yy, zy] = segments(y_column, k);
+        let [xz, yz, zz] = segments(z_column, k);
+        let (xj, yj, zj) = (px[j], py[j], pz[j]);
+        for i in 0..k {
+            let (rx, ry, rz) = (px[i] - xj, py[i] - yj, pz[i] - zj);
+            let inverse = 1.0 / (rx * rx + ry * ry + rz * rz + epsilon_sq).sqrt();
             let inverse_cubed = inverse * inverse * inverse;
-            *d = scale * (a * inverse + b * inverse_cubed);
-            *along = scale * inverse_cubed;
-        }
-        for column_component in 0..3 {
-            let column = gamma.entries_mut(column_component * k + j);
-            let r_b = &p.offset[column_component];
-            for (row_component, rows) in column.chunks_exact_mut(k).enumerate() {
-                let r_a = &p.offset[row_component];
-                for (((v, along), x), y) in rows.iter_mut().zip(&p.along).zip(r_a).zip(r_b) {
-                    *v = along * x * y;
-                }
-                if row_component == column_component {
-                    for (v, d) in rows.iter_mut().zip(&p.diagonal) {
-                        *v += d;
-                    }
-                }
-            }
+            let diagonal = scale * (a * inverse + b * inverse_cubed);
+            let along = scale * inverse_cubed;
+            let (ax, ay, az) = (along * rx, along * ry, along * rz);
+            xx[i] = ax * rx + diagonal;
+            yx[i] = ay * rx;
+            zx[i] = az * rx;
+            xy[i] = ax * ry;
+            yy[i] = ay * ry + diagonal;
+            zy[i] = az * ry;
+            xz[i] = ax * rz;
+            yz[i] = ay * rz;
+            zz[i] = az * rz + diagonal;
         }
     }
+}
+
+/// A component-major column's three runs of `k` rows (x, y, z).
+#[inline(always)]
+fn segments(column: &mut [f64], k: usize) -> [&mut [f64]; 3] {
+    let (x, rest) = column.split_at_mut(k);
+    let (y, z) = rest.split_at_mut(k);
+    [x, y, &mut z[..k]]
 }
