@@ -209,7 +209,7 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
 /// independent of the others, where one dot product per row would end each in a chain of
 /// dependent additions.
 #[multiversion(targets("x86_64+avx512f+avx512vl+avx2+fma", "x86_64+avx2+fma", "aarch64+neon"))]
-pub fn symmetric_times(g: &Dense, u: &[f64], out: &mut [f64]) {
+pub fn times(g: &Dense, u: &[f64], out: &mut [f64]) {
     let out = &mut out[..g.n];
     out.fill(0.0);
     for (l, &scale) in u[..g.n].iter().enumerate() {
@@ -379,7 +379,7 @@ mod tests {
             let reference = as_faer(&g) * as_faer(&g);
             let u: Vec<f64> = (0..n).map(|i| (i as f64 * 0.3).cos()).collect();
             let mut gu = vec![0.0; n];
-            symmetric_times(&g, &u, &mut gu);
+            times(&g, &u, &mut gu);
             let reference_gu = as_faer(&g) * Mat::from_fn(n, 1, |i, _| u[i]);
             for i in 0..n {
                 // Entries are sums of n terms of size ≤ 2.01²: a few ulps of 4n each.

@@ -128,8 +128,7 @@ impl Kelvinlet {
         out: &mut [f32],
     ) -> Result<(), SolveError> {
         let on_cpu = cloud.resident.is_none();
-        let short_solve = points.len() <= PREWAKE_MAX_POINTS;
-        if short_solve && on_cpu && cloud.len >= PARALLEL_MIN_NODES && rayon::current_thread_index().is_some() {
+        if points.len() <= PREWAKE_MAX_POINTS && on_cpu && splits_over_pool(cloud, points.len()) {
             rayon::spawn(|| {});
         }
         self.solve(points, workspace)?;
@@ -154,14 +153,18 @@ impl Kelvinlet {
                 chunk,
             );
         };
-        let terms = cloud.len.saturating_mul(coefficients.len());
-        let in_pool = rayon::current_thread_index().is_some();
-        if cloud.len >= PARALLEL_MIN_NODES && (in_pool || terms >= HANDOVER_MIN_TERMS) {
+        if splits_over_pool(cloud, coefficients.len()) {
             out.par_chunks_mut(3 * BLOCK).enumerate().with_min_len(8).for_each(run);
         } else {
             out.chunks_mut(3 * BLOCK).enumerate().for_each(run);
         }
     }
+}
+
+/// Whether a field of `points` over `cloud` is spread over rayon's pool from this thread.
+fn splits_over_pool(cloud: &NodeCloud, points: usize) -> bool {
+    let in_pool = rayon::current_thread_index().is_some();
+    cloud.len >= PARALLEL_MIN_NODES && (in_pool || cloud.len.saturating_mul(points) >= HANDOVER_MIN_TERMS)
 }
 
 /// Nodes evaluated together against every interaction point: one AVX-512 register per coordinate

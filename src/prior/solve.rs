@@ -10,7 +10,7 @@
 
 use multiversion::multiversion;
 
-use super::dense::{Dense, cholesky_lower, cholesky_solve_lower, gram_lower, symmetric_times};
+use super::dense::{Dense, cholesky_lower, cholesky_solve_lower, gram_lower, times};
 use super::{InteractionPoints, Kelvinlet};
 
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -92,7 +92,7 @@ impl Kelvinlet {
             ws.displacements.extend(points.displacements.iter().map(|u| u[c]));
         }
         ws.rhs.resize(n, 0.0);
-        symmetric_times(gamma, &ws.displacements, &mut ws.rhs);
+        times(gamma, &ws.displacements, &mut ws.rhs);
         cholesky_lower(&mut ws.normal, &mut ws.inverse_pivots)
             .map_err(|_| SolveError::NotPositiveDefinite { points: k })?;
         cholesky_solve_lower(&ws.normal, &ws.inverse_pivots, &mut ws.rhs);
