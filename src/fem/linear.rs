@@ -88,6 +88,20 @@ impl DofMap {
         Self { index, count }
     }
 
+    /// The DOFs of the nodes in `order`, numbered in that order; every other node is constrained.
+    pub fn in_order(node_count: usize, order: &[u32]) -> Self {
+        let mut index = vec![None; 3 * node_count];
+        for (rank, &n) in order.iter().enumerate() {
+            for c in 0..3 {
+                index[3 * n as usize + c] = Some((3 * rank + c) as u32);
+            }
+        }
+        Self {
+            index,
+            count: 3 * order.len(),
+        }
+    }
+
     pub fn len(&self) -> usize {
         self.count
     }

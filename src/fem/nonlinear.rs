@@ -238,7 +238,24 @@ impl Hyperelastic {
             .map(MooneyRivlin::from_material)
             .collect();
         let fixed = mesh.node_sets.get("fixed").cloned().unwrap_or_default();
-        let dofs = DofMap::without(mesh.node_count(), &fixed);
+        let mut free = vec![true; mesh.node_count()];
+        for &n in &fixed {
+            free[n as usize] = false;
+        }
+        // Unknowns numbered in the factor's elimination order, and elements visited by their first
+        // node in it: neighbouring elements then write neighbouring tangent entries (the scatter
+        // was bound by cache misses in the mesh's own numbering), and the factor needs no
+        // permutation.
+        let node_order = nested_dissection(&mesh.tets, mesh.node_count(), |n| free[n as usize])?;
+        let dofs = DofMap::in_order(mesh.node_count(), &node_order);
+        let mut rank = vec![u32::MAX; mesh.node_count()];
+        for (r, &n) in node_order.iter().enumerate() {
+            rank[n as usize] = r as u32;
+        }
+        let mut element_order: Vec<usize> = (0..mesh.tets.len()).collect();
+        element_order.sort_by_key(|&t| mesh.tets[t].map(|n| rank[n as usize]).into_iter().min());
+        let tets: Vec<[u32; 4]> = element_order.iter().map(|&t| mesh.tets[t]).collect();
+        let tet_law: Vec<u16> = element_order.iter().map(|&t| mesh.tet_region[t]).collect();
         let mut dof_owner = vec![(0, 0); dofs.len()];
         for n in 0..mesh.node_count() as u32 {
             for c in 0..3 {
@@ -252,7 +269,7 @@ impl Hyperelastic {
         let mut gradients = Vec::with_capacity(mesh.tets.len());
         let mut volumes = Vec::with_capacity(mesh.tets.len());
         let mut triplets = Vec::with_capacity(mesh.tets.len() * 144);
-        for (t, tet) in mesh.tets.iter().enumerate() {
+        for (tet, &t) in tets.iter().zip(&element_order) {
             let (g, v) = shape_gradients(tet.map(|n| mesh.positions[n as usize])).ok_or(FemError::Degenerate(t))?;
             gradients.push(g);
             volumes.push(v);
@@ -277,8 +294,7 @@ impl Hyperelastic {
             .symbolic()
             .to_owned()
             .map_err(|e| FemError::Assembly(format!("{e:?}")))?;
-        let scatter = mesh
-            .tets
+        let scatter = tets
             .iter()
             .map(|tet| {
                 let mut s = [u32::MAX; 144];
@@ -290,11 +306,13 @@ impl Hyperelastic {
                 s
             })
             .collect();
-        let ordering = nested_dissection(&mesh.tets, mesh.node_count(), &dofs)?;
+        // The unknowns are already in elimination order. Not `SymmetricOrdering::Identity`: with it
+        // faer 0.24 reads the pattern as an upper triangle whatever `side` says, and this one is full.
+        let identity: Vec<usize> = (0..n).collect();
         let symbolic = factorize_symbolic_cholesky(
             pattern.as_ref(),
             Side::Lower,
-            SymmetricOrdering::Custom(PermRef::new_checked(&ordering.forward, &ordering.inverse, n)),
+            SymmetricOrdering::Custom(PermRef::new_checked(&identity, &identity, n)),
             Default::default(),
         )
         .map_err(|e| FemError::Assembly(format!("symbolic factorization: {e:?}")))?;
@@ -308,8 +326,7 @@ impl Hyperelastic {
         let diagonal = (0..n).map(|d| find(&pattern, d, d).unwrap_or(usize::MAX)).collect();
         // Each element energy is a sum of terms of size ~V(3 C10 + 3 C01 + κ), each exact to ~1e-16.
         let energy_noise = 1e-13
-            * mesh
-                .tet_region
+            * tet_law
                 .iter()
                 .zip(&volumes)
                 .map(|(&r, v)| {
@@ -320,11 +337,11 @@ impl Hyperelastic {
         Ok(Self {
             energy_noise,
             nodes: mesh.node_count(),
-            tets: mesh.tets.clone(),
+            tets,
             gradients,
             volumes,
             laws,
-            tet_law: mesh.tet_region.clone(),
+            tet_law,
             dofs,
             dof_owner,
             pattern,

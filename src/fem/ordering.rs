@@ -6,21 +6,18 @@
 //! keeps each node's three DOFs in one supernode column block.
 
 use super::FemError;
-use super::linear::DofMap;
 
-/// A permutation of the unknowns: `forward[new] = old`, `inverse[old] = new`.
-pub struct Ordering {
-    pub forward: Vec<usize>,
-    pub inverse: Vec<usize>,
-}
-
-/// Nested dissection of the nodes that have unknowns, adjacent when they share a tetrahedron.
-pub fn nested_dissection(tets: &[[u32; 4]], nodes: usize, dofs: &DofMap) -> Result<Ordering, FemError> {
-    let has_dofs = |n: u32| (0..3).any(|c| dofs.get(n, c).is_some());
+/// Nested dissection of the nodes for which `has_unknowns` holds, adjacent when they share a
+/// tetrahedron: those nodes in elimination order.
+pub fn nested_dissection(
+    tets: &[[u32; 4]],
+    nodes: usize,
+    has_unknowns: impl Fn(u32) -> bool,
+) -> Result<Vec<u32>, FemError> {
     let mut vertex = vec![u32::MAX; nodes];
     let mut vertices = Vec::new();
     for n in 0..nodes as u32 {
-        if has_dofs(n) {
+        if has_unknowns(n) {
             vertex[n as usize] = vertices.len() as u32;
             vertices.push(n);
         }
@@ -45,17 +42,8 @@ pub fn nested_dissection(tets: &[[u32; 4]], nodes: usize, dofs: &DofMap) -> Resu
         adjncy.extend(list.iter().map(|&v| v as metis_sys::idx_t));
         xadj.push(adjncy.len() as metis_sys::idx_t);
     }
-    let node_order = metis_node_nd(&mut xadj, &mut adjncy)?;
-    let mut forward = Vec::with_capacity(dofs.len());
-    for v in node_order {
-        let node = vertices[v];
-        forward.extend((0..3).filter_map(|c| dofs.get(node, c)));
-    }
-    let mut inverse = vec![0; forward.len()];
-    for (new, &old) in forward.iter().enumerate() {
-        inverse[old] = new;
-    }
-    Ok(Ordering { forward, inverse })
+    let order = metis_node_nd(&mut xadj, &mut adjncy)?;
+    Ok(order.into_iter().map(|v| vertices[v]).collect())
 }
 
 /// METIS_NodeND on a graph in CSR form; returns the vertices in elimination order.
