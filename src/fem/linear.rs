@@ -69,23 +69,14 @@ pub struct DofMap {
 }
 
 impl DofMap {
-    /// All DOFs except those of `constrained` nodes.
+    /// All DOFs except those of `constrained` nodes, numbered by node.
     pub fn without(node_count: usize, constrained: &[u32]) -> Self {
         let mut free = vec![true; node_count];
         for &n in constrained {
             free[n as usize] = false;
         }
-        let mut index = vec![None; 3 * node_count];
-        let mut count = 0;
-        for (n, &f) in free.iter().enumerate() {
-            if f {
-                for c in 0..3 {
-                    index[3 * n + c] = Some(count as u32);
-                    count += 1;
-                }
-            }
-        }
-        Self { index, count }
+        let order: Vec<u32> = (0..node_count as u32).filter(|&n| free[n as usize]).collect();
+        Self::in_order(node_count, &order)
     }
 
     /// The DOFs of the nodes in `order`, numbered in that order; every other node is constrained.

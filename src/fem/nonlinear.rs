@@ -276,22 +276,12 @@ impl Hyperelastic {
         // permutation.
         let node_order = nested_dissection(&mesh.tets, mesh.node_count(), |n| free[n as usize])?;
         let dofs = DofMap::in_order(mesh.node_count(), &node_order);
-        let mut rank = vec![u32::MAX; mesh.node_count()];
-        for (r, &n) in node_order.iter().enumerate() {
-            rank[n as usize] = r as u32;
-        }
+        let first_unknown = |t: usize| mesh.tets[t].iter().filter_map(|&n| dofs.get(n, 0)).min();
         let mut element_order: Vec<usize> = (0..mesh.tets.len()).collect();
-        element_order.sort_by_key(|&t| mesh.tets[t].map(|n| rank[n as usize]).into_iter().min());
+        element_order.sort_by_key(|&t| first_unknown(t));
         let tets: Vec<[u32; 4]> = element_order.iter().map(|&t| mesh.tets[t]).collect();
         let tet_law: Vec<u16> = element_order.iter().map(|&t| mesh.tet_region[t]).collect();
-        let mut dof_owner = vec![(0, 0); dofs.len()];
-        for n in 0..mesh.node_count() as u32 {
-            for c in 0..3 {
-                if let Some(d) = dofs.get(n, c) {
-                    dof_owner[d] = (n, c as u8);
-                }
-            }
-        }
+        let dof_owner: Vec<(u32, u8)> = node_order.iter().flat_map(|&n| (0..3).map(move |c| (n, c))).collect();
         let body = &mesh.config.body;
         let mut body_force = vec![[0.0; 3]; mesh.node_count()];
         let mut gradients = Vec::with_capacity(mesh.tets.len());
