@@ -14,12 +14,12 @@ use faer::Side;
 use faer::perm::PermRef;
 use faer::sparse::linalg::cholesky::{SymbolicCholesky, SymmetricOrdering, factorize_symbolic_cholesky};
 use faer::sparse::{SparseColMat, SparseColMatRef, SymbolicSparseColMat, Triplet};
-use nalgebra::Matrix3;
+use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::FemError;
 use super::factor::{Factor, Krylov, TangentFactor};
-use super::hyperelastic::{MooneyRivlin, Tangent};
+use super::hyperelastic::{MooneyRivlin, TangentTerms};
 use super::linear::{DofMap, shape_gradients};
 use super::ordering::nested_dissection;
 use crate::mesh::TetMesh;
@@ -429,16 +429,16 @@ impl Hyperelastic {
         }
         for t in 0..self.tets.len() {
             let law = &self.laws[self.tet_law[t] as usize];
-            let f = self.deformation_gradient(t, u);
+            let response = law.response(&self.deformation_gradient(t, u))?;
             let (g, v) = (&self.gradients[t], self.volumes[t]);
-            let (energy, p, a) = law.response(&f, tangent.is_some())?;
-            strain += v * energy;
-            if let (Some(values), Some(a)) = (tangent.as_deref_mut(), a) {
-                scatter_element_tangent(&a, g, v, &self.scatter[t], values);
+            strain += v * response.energy;
+            if let Some(values) = tangent.as_deref_mut() {
+                scatter_element_tangent(&response.tangent, g, v, &self.scatter[t], values);
             }
             for (a, &n) in self.tets[t].iter().enumerate() {
+                let force = response.stress * Vector3::from(g[a]);
                 for i in 0..3 {
-                    forces[n as usize][i] += v * (0..3).map(|j| p[(i, j)] * g[a][j]).sum::<f64>();
+                    forces[n as usize][i] += v * force[i];
                 }
             }
         }
@@ -826,32 +826,25 @@ fn element_entries() -> impl Iterator<Item = (usize, usize, usize, usize)> {
 }
 
 /// Adds `K_ai,bk = V Σ_JL A_iJ,kL ∂_J N_a ∂_L N_b` into the CSC values.
-fn scatter_element_tangent(a: &Tangent, g: &[Vec3; 4], volume: f64, scatter: &[u32; 144], values: &mut [f64]) {
-    // m[node][i][k][L] = Σ_J ∂_J N_a A_iJ,kL, then contracted with ∂_L N_b.
-    let mut m = [[[[0.0; 3]; 3]; 3]; 4];
-    for (node, m) in m.iter_mut().enumerate() {
-        for i in 0..3 {
-            for k in 0..3 {
-                for l in 0..3 {
-                    m[i][k][l] = (0..3).map(|j| g[node][j] * a[3 * i + j][3 * k + l]).sum();
+fn scatter_element_tangent(a: &TangentTerms, g: &[Vec3; 4], volume: f64, scatter: &[u32; 144], values: &mut [f64]) {
+    let nodes = g.map(|g| a.node(&g));
+    // The element matrix is symmetric (A is): only blocks a ≤ b are computed, and each entry of
+    // the upper triangle goes to both places.
+    for na in 0..4 {
+        for nb in na..4 {
+            let block = volume * a.element_block(&nodes[na], &nodes[nb]);
+            for i in 0..3 {
+                let first_k = if na == nb { i } else { 0 };
+                for k in first_k..3 {
+                    let (row, col) = (3 * na + i, 3 * nb + k);
+                    let (upper, lower) = (scatter[12 * row + col], scatter[12 * col + row]);
+                    if upper != u32::MAX {
+                        values[upper as usize] += block[(i, k)];
+                    }
+                    if lower != u32::MAX && row != col {
+                        values[lower as usize] += block[(i, k)];
+                    }
                 }
-            }
-        }
-    }
-    // The element matrix is symmetric (A is): each entry of the upper triangle goes to both places.
-    for row in 0..12 {
-        for col in row..12 {
-            let (upper, lower) = (scatter[12 * row + col], scatter[12 * col + row]);
-            if upper == u32::MAX && lower == u32::MAX {
-                continue;
-            }
-            let (na, i, nb, k) = (row / 3, row % 3, col / 3, col % 3);
-            let value = volume * (0..3).map(|l| m[na][i][k][l] * g[nb][l]).sum::<f64>();
-            if upper != u32::MAX {
-                values[upper as usize] += value;
-            }
-            if lower != u32::MAX && row != col {
-                values[lower as usize] += value;
             }
         }
     }
