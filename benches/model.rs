@@ -9,7 +9,7 @@ use std::sync::Arc;
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use nak::engine::{DeformationModel, Engine, Grasp, Limits, Request};
-use nak::fem::{GreenLinear, GreenLinearModel};
+use nak::fem::{GreenFunctions, GreenModel, Stiffness};
 use nak::mesh::{self, MeshSource};
 
 const SHIPPED_REDUCED: [&str; 4] = ["pod-res-fast", "pod-res-lean", "pod-res-big", "pod-res"];
@@ -52,8 +52,9 @@ fn models(c: &mut Criterion) {
         ..Default::default()
     };
     let cache = Path::new(env!("CARGO_MANIFEST_DIR")).join("target/green-cache");
-    let green = GreenLinear::load_or_compute(&mesh, &cache, |_, _| {}).expect("Green's functions");
-    engine.add_model(Arc::new(GreenLinearModel::new(&mesh, Arc::new(green))));
+    let green =
+        GreenFunctions::load_or_compute(&mesh, Stiffness::Linear, &cache, |_, _| {}).expect("Green's functions");
+    engine.add_model(Arc::new(GreenModel::new(&mesh, Arc::new(green))));
     let mut group = c.benchmark_group("model");
     // green-linear at the paper's two-grasper size, K = 20.
     let two = Request {

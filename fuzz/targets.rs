@@ -10,7 +10,7 @@ use std::sync::{Arc, OnceLock};
 
 use arbitrary::{Arbitrary, Unstructured};
 use nak::engine::{Engine, Limits};
-use nak::fem::{GreenLinear, GreenLinearModel};
+use nak::fem::{GreenFunctions, GreenModel, Stiffness};
 use nak::mesh::{MeshConfig, TetMesh};
 use nak::model::Manifest;
 use nak::proto::v1 as pb;
@@ -82,7 +82,8 @@ fn engine() -> &'static Engine {
     ENGINE.get_or_init(|| {
         let mesh = box_mesh().clone();
         let cache = std::env::temp_dir().join(format!("nak-fuzz-{}", std::process::id()));
-        let green = GreenLinear::load_or_compute(&mesh, &cache, |_, _| {}).expect("green-linear on the box");
+        let green = GreenFunctions::load_or_compute(&mesh, Stiffness::Linear, &cache, |_, _| {})
+            .expect("green-linear on the box");
         // Few interaction points: the solve grows as (3K)³, and the fuzzer favours large requests,
         // which would spend its time solving instead of exploring; the limit's own check is fuzzed.
         let limits = Limits {
@@ -90,7 +91,7 @@ fn engine() -> &'static Engine {
             ..Limits::default()
         };
         let mut engine = Engine::new(mesh.clone(), limits);
-        engine.add_model(Arc::new(GreenLinearModel::new(&mesh, Arc::new(green))));
+        engine.add_model(Arc::new(GreenModel::new(&mesh, Arc::new(green))));
         engine
     })
 }

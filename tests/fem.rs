@@ -6,7 +6,7 @@ use std::path::Path;
 
 use common::msh_fixture::Fixture;
 use nak::fem::linear::{DofMap, assemble, element_stiffness, shape_gradients};
-use nak::fem::{GreenLinear, LinearSystem, solve_dirichlet};
+use nak::fem::{GreenFunctions, LinearSystem, Stiffness, solve_dirichlet};
 use nak::mesh::{self, MeshConfig, MeshSource, TetMesh};
 use nak::prior::InteractionPoints;
 
@@ -164,7 +164,7 @@ fn green_linear_equals_a_direct_solve_moves_grasped_nodes_exactly_and_gives_its_
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/phantom-liver/liver-coarse.msh");
     let m = mesh::load(&MeshSource::File(path)).unwrap();
     let cache = tempfile::tempdir().unwrap();
-    let green = GreenLinear::load_or_compute(&m, cache.path(), |_, _| {}).unwrap();
+    let green = GreenFunctions::load_or_compute(&m, Stiffness::Linear, cache.path(), |_, _| {}).unwrap();
     let mut points = InteractionPoints::default();
     for (set, u) in [("grasp_03", [0.01, 0.03, -0.01]), ("grasp_08", [-0.02, 0.02, 0.015])] {
         for &n in m.node_sets[set].iter().take(6) {
@@ -229,6 +229,7 @@ fn green_linear_equals_a_direct_solve_moves_grasped_nodes_exactly_and_gives_its_
         "K·u does not balance: {total:?}"
     );
     // A second load reads the cache instead of recomputing.
-    let again = GreenLinear::load_or_compute(&m, cache.path(), |_, _| panic!("recomputed")).unwrap();
+    let again =
+        GreenFunctions::load_or_compute(&m, Stiffness::Linear, cache.path(), |_, _| panic!("recomputed")).unwrap();
     assert_eq!(again.candidates(), green.candidates());
 }

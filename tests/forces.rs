@@ -9,7 +9,7 @@ use common::models::{coarse, engine_with_models, two_graspers};
 use common::server::TestServer;
 use nak::data::dataset;
 use nak::engine::Grasp;
-use nak::fem::{GreenLinear, GreenLinearModel, nodal_forces, solve_dirichlet};
+use nak::fem::{GreenFunctions, GreenModel, Stiffness, nodal_forces, solve_dirichlet};
 use nak::proto::v1 as pb;
 use nak::serve::grasp_message;
 
@@ -34,13 +34,13 @@ async fn each_model_answers_with_exact_estimated_or_no_forces_and_says_which() {
     let mesh = coarse();
     let cache = tempfile::tempdir().unwrap();
     let mut engine = engine_with_models(mesh.clone());
-    let green = GreenLinear::load_or_compute(&mesh, cache.path(), |_, _| {}).unwrap();
+    let green = GreenFunctions::load_or_compute(&mesh, Stiffness::Linear, cache.path(), |_, _| {}).unwrap();
     let unreached = *mesh
         .surface_nodes
         .iter()
         .find(|n| !green.candidates().contains(n))
         .unwrap();
-    engine.add_model(Arc::new(GreenLinearModel::new(&mesh, Arc::new(green))));
+    engine.add_model(Arc::new(GreenModel::new(&mesh, Arc::new(green))));
     let server = TestServer::with_engine(engine, 1 << 20).await;
     let mut client = server.client().await;
     let listed = client

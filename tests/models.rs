@@ -10,7 +10,7 @@ use common::models::{coarse, copy_model, engine_with_models, load_error, ort, pr
 use common::server::TestServer;
 use nak::engine::DeformationModel;
 use nak::engine::{Engine, Grasp, Limits, Request, Selection};
-use nak::fem::{GreenLinear, GreenLinearModel};
+use nak::fem::{GreenFunctions, GreenModel, Stiffness};
 use nak::mesh::PriorParams;
 use nak::model::{self, LoadContext, OnnxModel};
 use nak::prior::{InteractionPoints, Kelvinlet, NodeCloud, Workspace};
@@ -225,13 +225,13 @@ fn each_model_is_served_with_its_own_prior() {
 fn a_model_on_the_green_linear_prior_serves_green_linear_plus_its_network() {
     let mesh = coarse();
     let cache = tempfile::tempdir().unwrap();
-    let green = Arc::new(GreenLinear::load_or_compute(&mesh, cache.path(), |_, _| {}).unwrap());
+    let green = Arc::new(GreenFunctions::load_or_compute(&mesh, Stiffness::Linear, cache.path(), |_, _| {}).unwrap());
     let mut engine = engine_with_models(mesh.clone());
-    engine.add_model(Arc::new(GreenLinearModel::new(&mesh, green.clone())));
-    let source = || Ok(green.clone());
+    engine.add_model(Arc::new(GreenModel::new(&mesh, green.clone())));
+    let source = |_| Ok(green.clone());
     let on_green = LoadContext {
         ort_dylib: ort(),
-        green_linear: Some(&source),
+        green: Some(&source),
     };
     let mut copies = Vec::new();
     // Both serving paths: a features network (mlp) and an interaction network over a basis.

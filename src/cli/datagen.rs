@@ -6,9 +6,9 @@ use anyhow::Context;
 use nak::data::dataset::{DatasetInfo, SPLIT_RULE, SolverLimits};
 use nak::data::generate::{NonlinearTally, generate_linear, generate_nonlinear};
 use nak::data::shard::Shard;
-use nak::fem::GreenLinear;
 use nak::fem::nonlinear::NewtonOptions;
 use nak::fem::preload::Preloaded;
+use nak::fem::{GreenFunctions, Stiffness};
 use nak::mesh::TetMesh;
 
 #[derive(clap::Args)]
@@ -101,7 +101,7 @@ pub fn run(args: DatagenArgs, mesh: &TetMesh, cache: PathBuf) -> anyhow::Result<
     let generated = match args.regime {
         Regime::Linear => {
             bar.set_message("Green's functions");
-            let green = GreenLinear::load_or_compute(mesh, &cache, update)
+            let green = GreenFunctions::load_or_compute(mesh, Stiffness::Linear, &cache, update)
                 .with_context(|| format!("cannot prepare the Green's functions (cache {})", cache.display()))?;
             bar.set_message("samples");
             bar.set_position(0);

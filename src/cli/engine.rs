@@ -1,14 +1,15 @@
 //! The serving engine as the subcommands assemble it from flags: the mesh, the Kelvinlet prior, the
 //! shipped networks, every model directory (a model that cannot be loaded is refused, the others
-//! served), and green-linear when asked for.
+//! served), and green-linear and green-tangent when asked for.
 
 use std::cell::RefCell;
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use anyhow::Context;
 use nak::engine::{DeformationModel, Engine, RefusedModel};
-use nak::fem::{GreenLinear, GreenLinearModel};
+use nak::fem::{GreenFunctions, GreenModel, Stiffness};
 use nak::mesh::{self, MeshSource, TetMesh};
 use nak::model::LoadContext;
 use nak::prior::PriorBackend;
@@ -22,7 +23,13 @@ pub struct ModelArgs {
     /// (computed on first use and cached; see --cache-dir).
     #[arg(long)]
     pub green_linear: bool,
-    /// Where green-linear's Green's functions are cached [default: $XDG_CACHE_HOME/nak or ~/.cache/nak].
+    /// Also serve `green-tangent`, the hyperelastic model linearized about its gravity-preloaded state
+    /// (the exact answer of the nonlinear regime for small grasps), through Green's functions computed
+    /// on first use and cached.
+    #[arg(long)]
+    pub green_tangent: bool,
+    /// Where Green's functions and the preloaded state are cached [default: $XDG_CACHE_HOME/nak or
+    /// ~/.cache/nak].
     #[arg(long, value_name = "DIR")]
     pub cache_dir: Option<PathBuf>,
     /// A directory whose subdirectories are models (manifest.toml + model.onnx); repeatable. A --mesh
@@ -39,13 +46,14 @@ pub struct ModelArgs {
 
 impl ModelArgs {
     /// The engine these flags ask for on `mesh`, with `model` (the one the subcommand evaluates) served
-    /// even when it is green-linear and the flag was not given.
+    /// even when it is green-linear or green-tangent and the flag was not given.
     pub fn engine(self, mesh: Option<PathBuf>, model: &str) -> anyhow::Result<Engine> {
         build_engine(&ServeConfig {
             mesh,
             models: self.dirs,
             ort_dylib: self.ort_dylib,
-            green_linear: self.green_linear || model == GreenLinearModel::NAME,
+            green_linear: self.green_linear || model == GreenModel::LINEAR,
+            green_tangent: self.green_tangent || model == GreenModel::TANGENT,
             cache_dir: self.cache_dir,
             prior_backend: self.prior_backend.unwrap_or_default(),
             ..ServeConfig::default()
@@ -66,21 +74,21 @@ pub fn build_engine(config: &ServeConfig) -> anyhow::Result<Engine> {
         .use_prior_backend(config.prior_backend)
         .context("cannot use the GPU prior (--prior-backend gpu); `auto` falls back to the CPU")?;
     info!("{choice}");
-    // Green's functions are made (or read from the cache) once, when the first model needs them: a
-    // network trained on the green-linear prior, or green-linear itself.
-    let green: RefCell<Option<Arc<GreenLinear>>> = RefCell::new(None);
-    let green_linear = || -> anyhow::Result<Arc<GreenLinear>> {
-        if let Some(green) = green.borrow().as_ref() {
+    // Green's functions are made (or read from the cache) once per stiffness, when the first model
+    // needs them: a network trained on that prior, or green-linear or green-tangent itself.
+    let made: RefCell<HashMap<Stiffness, Arc<GreenFunctions>>> = RefCell::new(HashMap::new());
+    let green = |stiffness: Stiffness| -> anyhow::Result<Arc<GreenFunctions>> {
+        if let Some(green) = made.borrow().get(&stiffness) {
             return Ok(green.clone());
         }
-        let made = Arc::new(load_green_linear(&mesh, config)?);
-        *green.borrow_mut() = Some(made.clone());
-        Ok(made)
+        let green = Arc::new(load_green(&mesh, stiffness, config)?);
+        made.borrow_mut().insert(stiffness, green.clone());
+        Ok(green)
     };
-    let green_source = || green_linear().map_err(|e| format!("{e:#}"));
+    let green_source = |stiffness| green(stiffness).map_err(|e| format!("{e:#}"));
     let context = LoadContext {
         ort_dylib: config.ort_dylib.as_deref(),
-        green_linear: Some(&green_source),
+        green: Some(&green_source),
     };
     if config.mesh.is_none() {
         load_shipped_models(&mut engine, &mesh, context)?;
@@ -105,8 +113,13 @@ pub fn build_engine(config: &ServeConfig) -> anyhow::Result<Engine> {
             }
         }
     }
-    if config.green_linear {
-        engine.add_model(Arc::new(GreenLinearModel::new(&mesh, green_linear()?)));
+    for (wanted, stiffness) in [
+        (config.green_linear, Stiffness::Linear),
+        (config.green_tangent, Stiffness::PreloadTangent),
+    ] {
+        if wanted {
+            engine.add_model(Arc::new(GreenModel::new(&mesh, green(stiffness)?)));
+        }
     }
     Ok(engine)
 }
@@ -130,20 +143,21 @@ fn load_shipped_models(engine: &mut Engine, mesh: &TetMesh, context: LoadContext
     Ok(())
 }
 
-/// Loads green-linear's Green's functions from the cache, computing them with a progress bar first.
-fn load_green_linear(mesh: &TetMesh, config: &ServeConfig) -> anyhow::Result<GreenLinear> {
+/// Loads the Green's functions of `stiffness` from the cache, computing them with a progress bar first.
+fn load_green(mesh: &TetMesh, stiffness: Stiffness, config: &ServeConfig) -> anyhow::Result<GreenFunctions> {
     let cache = config.cache_dir.clone().unwrap_or_else(default_cache_dir);
     let bar = indicatif::ProgressBar::new(0).with_style(
         indicatif::ProgressStyle::with_template("Green's functions {bar:30} {pos}/{len} columns, ETA {eta}")
             .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
     );
-    let green = GreenLinear::load_or_compute(mesh, &cache, |done, total| {
+    let name = stiffness.model_name();
+    let green = GreenFunctions::load_or_compute(mesh, stiffness, &cache, |done, total| {
         bar.set_length(total as u64);
         bar.set_position(done as u64);
     })
-    .with_context(|| format!("cannot prepare green-linear (cache {})", cache.display()))?;
+    .with_context(|| format!("cannot prepare {name} (cache {})", cache.display()))?;
     bar.finish_and_clear();
-    info!(cache = %green.path.display(), candidates = green.candidates().len(), "green-linear ready");
+    info!(cache = %green.path.display(), candidates = green.candidates().len(), "{name} ready");
     Ok(green)
 }
 

@@ -174,6 +174,7 @@ fn serve_config(args: ServeArgs) -> anyhow::Result<ServeConfig> {
     );
     config.models.extend(args.models.dirs);
     config.green_linear |= args.models.green_linear;
+    config.green_tangent |= args.models.green_tangent;
     config.cache_dir = args.models.cache_dir.or(config.cache_dir);
     config.record = args.record.or(config.record);
     config.record_payload = args.record_payload.unwrap_or(config.record_payload);

@@ -10,7 +10,7 @@ use super::GraspSampler;
 use super::dataset::{self, DatasetError, DatasetInfo, SampleRecord, SolveRecord};
 use crate::fem::nonlinear::{SolveProfile, SolveStats};
 use crate::fem::preload::Preloaded;
-use crate::fem::{GreenLinear, nodal_forces, solve_dirichlet};
+use crate::fem::{GreenFunctions, nodal_forces, solve_dirichlet};
 use crate::mesh::TetMesh;
 use crate::prior::InteractionPoints;
 
@@ -65,7 +65,7 @@ impl NonlinearTally {
 /// has a column (fast), else by a direct Dirichlet solve (one factorization) and K·u.
 fn linear_field(
     mesh: &TetMesh,
-    green: &GreenLinear,
+    green: &GreenFunctions,
     sample: &mut SampleRecord,
     direct: &AtomicUsize,
 ) -> Result<Vec<f32>, DatasetError> {
@@ -107,7 +107,7 @@ fn write_field(field: &mut [f32], u: &[[f64; 3]]) {
 /// Generates (or resumes) a linear dataset; `progress(samples done, total)`.
 pub fn generate_linear(
     mesh: &TetMesh,
-    green: &GreenLinear,
+    green: &GreenFunctions,
     info: &DatasetInfo,
     dir: &Path,
     progress: impl Fn(usize, usize) + Sync,

@@ -1,10 +1,13 @@
-//! The exact real-time linear model `green-linear` (DESIGN.md §4; James & Pai's capacitance matrix).
+//! Exact real-time linear models through Green's functions (DESIGN.md §4; James & Pai's capacitance
+//! matrix): `green-linear`, small-strain elasticity at the reference configuration, and
+//! `green-tangent`, the hyperelastic model linearized about its gravity-preloaded equilibrium (the
+//! exact answer of the nonlinear regime for small grasps).
 //!
 //! With G = K⁻¹ on the DOFs that are not fixed, the Dirichlet solution for grasped nodes S moved by
 //! u_S is `u = G[:,S] (G[S,S])⁻¹ u_S`: the forces at S that produce u_S, applied through G. Columns of
 //! G for every candidate grasp node are computed once (one sparse Cholesky, one solve per column),
-//! cached on disk keyed by the mesh and material hashes, and memory-mapped; a request is then a 3K×3K
-//! solve and a dense 3N×3K product.
+//! cached on disk keyed by the mesh and the stiffness's own hash, and memory-mapped; a request is then
+//! a 3K×3K solve and a dense 3N×3K product.
 
 use std::collections::{BTreeMap, HashMap};
 use std::io::Write;
@@ -17,6 +20,8 @@ use memmap2::Mmap;
 use nalgebra::{DMatrix, DVector};
 use rayon::prelude::*;
 
+use super::nonlinear::NewtonOptions;
+use super::preload::{Preloaded, hyperelastic_hash};
 use super::{FemError, LinearSystem};
 use crate::engine::{Answer, DeformationModel, Forces, ModelError, ModelInfo, ModelKind, StageTiming, Target};
 use crate::mesh::TetMesh;
@@ -31,8 +36,75 @@ const REACH_M: f64 = 0.015;
 /// Right-hand sides solved together.
 const BATCH: usize = 48;
 
+/// The stiffness K whose inverse the Green's functions are.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Stiffness {
+    /// Small-strain linear elasticity at the reference configuration (model.toml's μ, ν).
+    Linear,
+    /// The Mooney–Rivlin tangent at the gravity-preloaded equilibrium: material and initial-stress
+    /// stiffness in the sagged geometry, which is where nonlinear grasps start from.
+    PreloadTangent,
+}
+
+impl Stiffness {
+    /// The served model these Green's functions are.
+    pub fn model_name(self) -> &'static str {
+        match self {
+            Stiffness::Linear => GreenModel::LINEAR,
+            Stiffness::PreloadTangent => GreenModel::TANGENT,
+        }
+    }
+
+    /// The hash of what K depends on besides the geometry.
+    fn key(self, mesh: &TetMesh) -> String {
+        match self {
+            Stiffness::Linear => material_hash(mesh),
+            Stiffness::PreloadTangent => hyperelastic_hash(mesh),
+        }
+    }
+
+    fn cache_file(self, mesh: &TetMesh, cache_dir: &Path) -> PathBuf {
+        let prefix = match self {
+            Stiffness::Linear => "green",
+            Stiffness::PreloadTangent => "green-tangent",
+        };
+        cache_dir.join(format!(
+            "{prefix}-{}-{}.bin",
+            &mesh.content_hash[..16],
+            &self.key(mesh)[..16]
+        ))
+    }
+
+    /// K with the fixed nodes eliminated, factorized. The tangent needs the preloaded state, which is
+    /// solved (and cached in `cache_dir`) if no earlier run did.
+    fn system(self, mesh: &TetMesh, cache_dir: &Path) -> Result<LinearSystem, FemError> {
+        match self {
+            Stiffness::Linear => LinearSystem::new(mesh),
+            Stiffness::PreloadTangent => {
+                let preloaded = Preloaded::load_or_compute(mesh, cache_dir, NewtonOptions::default())?;
+                let (tangent, _) = preloaded
+                    .solver
+                    .linearize(&preloaded.rest)
+                    .ok_or_else(|| FemError::Assembly("the preloaded state has an inverted element".into()))?;
+                LinearSystem::from_stiffness(preloaded.solver.dofs().clone(), &tangent)
+            }
+        }
+    }
+
+    fn describe(self) -> &'static str {
+        match self {
+            Stiffness::Linear => "exact linear FEM through precomputed Green's functions (capacitance matrix)",
+            Stiffness::PreloadTangent => {
+                "the hyperelastic model linearized about its gravity-preloaded equilibrium, through \
+                 precomputed Green's functions (capacitance matrix)"
+            }
+        }
+    }
+}
+
 /// Columns of G for the candidate nodes, memory-mapped from the cache.
-pub struct GreenLinear {
+pub struct GreenFunctions {
+    stiffness: Stiffness,
     nodes: usize,
     candidates: Vec<u32>,
     column_of: HashMap<u32, usize>,
@@ -78,31 +150,34 @@ pub fn candidate_nodes(mesh: &TetMesh) -> Vec<u32> {
     mesh.surface_nodes.iter().copied().filter(|&n| near(n)).collect()
 }
 
-impl GreenLinear {
-    /// Loads the cached columns for `mesh` from `cache_dir`, computing and caching them first if
-    /// needed; `progress(done, total)` reports the columns solved.
+impl GreenFunctions {
+    /// Loads the cached columns of `stiffness`'s inverse for `mesh` from `cache_dir`, computing and
+    /// caching them first if needed; `progress(done, total)` reports the columns solved.
     pub fn load_or_compute(
         mesh: &TetMesh,
+        stiffness: Stiffness,
         cache_dir: &Path,
         progress: impl Fn(usize, usize) + Sync,
     ) -> Result<Self, FemError> {
-        let materials = material_hash(mesh);
-        let path = cache_dir.join(format!("green-{}-{}.bin", &mesh.content_hash[..16], &materials[..16]));
+        let key = stiffness.key(mesh);
+        let path = stiffness.cache_file(mesh, cache_dir);
         if !path.exists() {
             let candidates = candidate_nodes(mesh);
             let started = Instant::now();
-            compute(mesh, &candidates, &materials, &path, progress)?;
+            let system = stiffness.system(mesh, cache_dir)?;
+            compute(mesh, &system, &candidates, &key, &path, progress)?;
             tracing::info!(
+                model = stiffness.model_name(),
                 file = %path.display(),
                 columns = 3 * candidates.len(),
                 seconds = started.elapsed().as_secs_f64(),
                 "Green's functions computed"
             );
         }
-        Self::open(&path, mesh, &materials)
+        Self::open(&path, mesh, stiffness, &key)
     }
 
-    fn open(path: &Path, mesh: &TetMesh, materials: &str) -> Result<Self, FemError> {
+    fn open(path: &Path, mesh: &TetMesh, stiffness: Stiffness, key: &str) -> Result<Self, FemError> {
         let origin = path.display().to_string();
         let corrupt = |message: &str| FemError::Cache {
             path: origin.clone(),
@@ -122,9 +197,7 @@ impl GreenLinear {
         }
         let u64_at = |o: usize| u64::from_le_bytes(map[o..o + 8].try_into().unwrap_or_default()) as usize;
         let (nodes, count) = (u64_at(8), u64_at(16));
-        if nodes != mesh.node_count()
-            || &map[24..88] != mesh.content_hash.as_bytes()
-            || &map[88..152] != materials.as_bytes()
+        if nodes != mesh.node_count() || &map[24..88] != mesh.content_hash.as_bytes() || &map[88..152] != key.as_bytes()
         {
             return Err(corrupt("made for another mesh or materials"));
         }
@@ -139,6 +212,7 @@ impl GreenLinear {
             .collect();
         let column_of = candidates.iter().enumerate().map(|(i, &n)| (n, i)).collect();
         Ok(Self {
+            stiffness,
             nodes,
             candidates,
             column_of,
@@ -150,6 +224,10 @@ impl GreenLinear {
 
     pub fn candidates(&self) -> &[u32] {
         &self.candidates
+    }
+
+    pub fn stiffness(&self) -> Stiffness {
+        self.stiffness
     }
 
     /// Column of G for a unit force on (candidate index, component): 3N values.
@@ -173,8 +251,9 @@ impl GreenLinear {
         for &n in &points.nodes {
             let c = self.column_of.get(&n).ok_or_else(|| {
                 ModelError::Unsupported(format!(
-                    "green-linear has no Green's function for node {n}: it serves grasps within {:.0} mm of \
-                     the grasp regions ({} nodes)",
+                    "{} has no Green's function for node {n}: it serves grasps within {:.0} mm of the grasp \
+                     regions ({} nodes)",
+                    self.stiffness.model_name(),
                     REACH_M * 1e3,
                     self.candidates.len()
                 ))
@@ -226,12 +305,12 @@ impl GreenLinear {
 /// Solves for the columns in batches across cores and writes the cache file atomically.
 fn compute(
     mesh: &TetMesh,
+    system: &LinearSystem,
     candidates: &[u32],
-    materials: &str,
+    key: &str,
     path: &Path,
     progress: impl Fn(usize, usize) + Sync,
 ) -> Result<(), FemError> {
-    let system = LinearSystem::new(mesh)?;
     let n = mesh.node_count();
     let total = 3 * candidates.len();
     let done = std::sync::atomic::AtomicUsize::new(0);
@@ -279,7 +358,7 @@ fn compute(
     header.extend_from_slice(&(n as u64).to_le_bytes());
     header.extend_from_slice(&(candidates.len() as u64).to_le_bytes());
     header.extend_from_slice(mesh.content_hash.as_bytes());
-    header.extend_from_slice(materials.as_bytes());
+    header.extend_from_slice(key.as_bytes());
     for c in candidates {
         header.extend_from_slice(&c.to_le_bytes());
     }
@@ -296,43 +375,50 @@ fn compute(
     })
 }
 
-/// `green-linear` as a served model.
-pub struct GreenLinearModel {
+/// Green's functions as a served model: `green-linear` or `green-tangent`.
+pub struct GreenModel {
     info: ModelInfo,
-    green: Arc<GreenLinear>,
+    green: Arc<GreenFunctions>,
 }
 
-impl GreenLinearModel {
-    pub const NAME: &'static str = "green-linear";
+impl GreenModel {
+    pub const LINEAR: &'static str = "green-linear";
+    pub const TANGENT: &'static str = "green-tangent";
 
-    pub fn new(mesh: &TetMesh, green: Arc<GreenLinear>) -> Self {
+    pub fn new(mesh: &TetMesh, green: Arc<GreenFunctions>) -> Self {
+        let stiffness = green.stiffness;
+        let forces = match stiffness {
+            Stiffness::Linear => "exact: (G[S,S])⁻¹ u_S, the linear FEM's K·u at the held nodes",
+            Stiffness::PreloadTangent => {
+                "(G[S,S])⁻¹ u_S, the tangent's K·u at the held nodes: the change of the held nodes' \
+                 force from the preloaded state, exact for small grasps"
+            }
+        };
         let metadata = BTreeMap::from([
-            (
-                "description".to_owned(),
-                "exact linear FEM through precomputed Green's functions (capacitance matrix)".to_owned(),
-            ),
+            ("description".to_owned(), stiffness.describe().to_owned()),
             ("candidate_nodes".to_owned(), green.candidates.len().to_string()),
-            (
-                "forces".to_owned(),
-                "exact: (G[S,S])⁻¹ u_S, the linear FEM's K·u at the held nodes".to_owned(),
-            ),
+            ("forces".to_owned(), forces.to_owned()),
             ("cache".to_owned(), green.path.display().to_string()),
         ]);
+        let (regime, forces) = match stiffness {
+            Stiffness::Linear => ("linear", Forces::Exact),
+            Stiffness::PreloadTangent => ("nonlinear", Forces::Estimate),
+        };
         Self {
             info: ModelInfo {
-                name: Self::NAME.to_owned(),
+                name: stiffness.model_name().to_owned(),
                 kind: ModelKind::Exact,
                 mesh: mesh.content_hash.clone(),
-                regime: "linear".to_owned(),
+                regime: regime.to_owned(),
                 metadata,
-                forces: Forces::Exact,
+                forces,
             },
             green,
         }
     }
 }
 
-impl DeformationModel for GreenLinearModel {
+impl DeformationModel for GreenModel {
     fn info(&self) -> &ModelInfo {
         &self.info
     }

@@ -172,11 +172,16 @@ impl LinearSystem {
     pub fn with_constrained(mesh: &TetMesh, constrained: &[u32]) -> Result<(Self, Vec<Coupling>), FemError> {
         let dofs = DofMap::without(mesh.node_count(), constrained);
         let assembled = assemble(mesh, &dofs)?;
-        let factor = assembled
-            .stiffness
+        Ok((Self::from_stiffness(dofs, &assembled.stiffness)?, assembled.coupling))
+    }
+
+    /// Factorizes a symmetric positive definite `stiffness` (its lower triangle is read) on the
+    /// unknowns `dofs` numbers.
+    pub fn from_stiffness(dofs: DofMap, stiffness: &SparseColMat<usize, f64>) -> Result<Self, FemError> {
+        let factor = stiffness
             .sp_cholesky(Side::Lower)
             .map_err(|e| FemError::NotPositiveDefinite(format!("{e:?}")))?;
-        Ok((Self { dofs, factor }, assembled.coupling))
+        Ok(Self { dofs, factor })
     }
 
     /// Solves K x = b in place; `b` has one column per right-hand side.

@@ -17,6 +17,8 @@ pub enum PriorModel {
     Kelvinlet,
     /// The exact linear FEM answer (green-linear); the Kelvinlet parameters are then unused.
     GreenLinear,
+    /// The hyperelastic model linearized about its gravity-preloaded state (green-tangent).
+    GreenTangent,
 }
 
 /// `[prior]`: which prior, and the Kelvinlet's parameters (kept for every model: they are the

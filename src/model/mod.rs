@@ -16,29 +16,27 @@ pub use manifest::{Channel, Manifest, Method, Mode, PriorModel};
 pub use onnx::{ModelFiles, OnnxModel};
 pub use prior::ModelPrior;
 
-use crate::fem::GreenLinear;
+use crate::fem::{GreenFunctions, Stiffness};
 use crate::mesh::TetMesh;
 
-/// Gives green-linear's Green's functions to the networks trained on that prior. Called only when
-/// such a network is loaded: computing them costs seconds and a cache file (4 s and 232 MB on the
-/// phantom), which a server whose networks do not need them should not pay.
-pub type GreenLinearSource<'a> = &'a dyn Fn() -> Result<Arc<GreenLinear>, String>;
+/// Gives the Green's functions of a stiffness (green-linear's or green-tangent's) to the networks
+/// trained on that prior. Called only when such a network is loaded: computing them costs seconds
+/// and a cache file (4 s and 232 MB on the phantom), which a server whose networks do not need them
+/// should not pay.
+pub type GreenSource<'a> = &'a dyn Fn(Stiffness) -> Result<Arc<GreenFunctions>, String>;
 
 /// What loading a network may need from outside its directory.
 #[derive(Clone, Copy, Default)]
 pub struct LoadContext<'a> {
     /// ONNX Runtime's shared library (`None`: $ORT_DYLIB_PATH).
     pub ort_dylib: Option<&'a Path>,
-    /// `None`: networks on the green-linear prior are refused, saying how to serve them.
-    pub green_linear: Option<GreenLinearSource<'a>>,
+    /// `None`: networks on a Green's-function prior are refused, saying how to serve them.
+    pub green: Option<GreenSource<'a>>,
 }
 
 impl<'a> From<Option<&'a Path>> for LoadContext<'a> {
     fn from(ort_dylib: Option<&'a Path>) -> Self {
-        Self {
-            ort_dylib,
-            green_linear: None,
-        }
+        Self { ort_dylib, green: None }
     }
 }
 

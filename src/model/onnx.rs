@@ -17,6 +17,7 @@ use super::prior::ModelPrior;
 use super::signature::{self, COEFFICIENTS, DISPLACEMENT, Input, Output, Signature};
 use super::{LoadContext, ModelLoadError};
 use crate::engine::{Answer, DeformationModel, Forces, ModelError, ModelInfo, ModelKind, StageTiming, Target};
+use crate::fem::Stiffness;
 use crate::mesh::TetMesh;
 use crate::prior::gpu::{GpuBasis, GpuError, GpuPrior};
 use crate::prior::{Coefficients, InteractionPoints, Kelvinlet, NodeCloud, Workspace};
@@ -316,22 +317,25 @@ impl OnnxModel {
     }
 }
 
-/// The prior the manifest names; green-linear's Green's functions come from `context`.
+/// The prior the manifest names; Green's functions come from `context`.
 fn model_prior(manifest: &Manifest, context: LoadContext<'_>, origin: &str) -> Result<ModelPrior, ModelLoadError> {
-    match manifest.prior.model {
-        PriorModel::Kelvinlet => Ok(ModelPrior::Kelvinlet(Kelvinlet::new(manifest.prior.kelvinlet()))),
-        PriorModel::GreenLinear => {
-            let source = context.green_linear.ok_or_else(|| {
-                ModelLoadError::new(
-                    origin,
-                    "prior.model = \"green-linear\", but this loader has no Green's functions to give it \
-                     (nak serve and nak eval build them when a model needs them)",
-                )
-            })?;
-            let green = source().map_err(|e| ModelLoadError::new(origin, format!("green-linear prior: {e}")))?;
-            Ok(ModelPrior::GreenLinear(green))
-        }
-    }
+    let stiffness = match manifest.prior.model {
+        PriorModel::Kelvinlet => return Ok(ModelPrior::Kelvinlet(Kelvinlet::new(manifest.prior.kelvinlet()))),
+        PriorModel::GreenLinear => Stiffness::Linear,
+        PriorModel::GreenTangent => Stiffness::PreloadTangent,
+    };
+    let name = stiffness.model_name();
+    let source = context.green.ok_or_else(|| {
+        ModelLoadError::new(
+            origin,
+            format!(
+                "prior.model = \"{name}\", but this loader has no Green's functions to give it (nak serve \
+                 and nak eval build them when a model needs them)"
+            ),
+        )
+    })?;
+    let green = source(stiffness).map_err(|e| ModelLoadError::new(origin, format!("{name} prior: {e}")))?;
+    Ok(ModelPrior::Green(green))
 }
 
 /// A graph outputs `coefficients` exactly when a basis lies beside it; the basis must fit the mesh and

@@ -1,16 +1,16 @@
 //! The prior a network is composed with, as its manifest names it: the Kelvinlet with the model's own
-//! parameters, or the exact linear answer through green-linear's Green's functions (shared with the
-//! server's `green-linear` model).
+//! parameters, or an exact linear answer through Green's functions (green-linear's or green-tangent's,
+//! shared with the server's model of that name).
 
 use std::sync::Arc;
 
 use crate::engine::{KelvinletModel, ModelError, Target};
-use crate::fem::{GreenLinear, GreenLinearModel};
+use crate::fem::GreenFunctions;
 use crate::prior::{InteractionPoints, Kelvinlet, Workspace};
 
 pub enum ModelPrior {
     Kelvinlet(Kelvinlet),
-    GreenLinear(Arc<GreenLinear>),
+    Green(Arc<GreenFunctions>),
 }
 
 impl ModelPrior {
@@ -27,8 +27,8 @@ impl ModelPrior {
                 kelvinlet.solve_and_evaluate(points, workspace, target.cloud, out)?;
                 Ok(())
             }
-            // The grasp forces green-linear also gives are not the network's: dropped.
-            ModelPrior::GreenLinear(green) => green.solve(points, target.nodes, out, &mut Vec::new()),
+            // The grasp forces the Green's functions also give are not the network's: dropped.
+            ModelPrior::Green(green) => green.solve(points, target.nodes, out, &mut Vec::new()),
         }
     }
 
@@ -36,7 +36,7 @@ impl ModelPrior {
     pub fn kelvinlet(&self) -> Option<&Kelvinlet> {
         match self {
             ModelPrior::Kelvinlet(kelvinlet) => Some(kelvinlet),
-            ModelPrior::GreenLinear(_) => None,
+            ModelPrior::Green(_) => None,
         }
     }
 
@@ -44,7 +44,7 @@ impl ModelPrior {
     pub fn name(&self) -> &'static str {
         match self {
             ModelPrior::Kelvinlet(_) => KelvinletModel::NAME,
-            ModelPrior::GreenLinear(_) => GreenLinearModel::NAME,
+            ModelPrior::Green(green) => green.stiffness().model_name(),
         }
     }
 }

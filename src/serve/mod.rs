@@ -46,7 +46,9 @@ pub struct ServeConfig {
     pub ort_dylib: Option<PathBuf>,
     /// Serve the exact linear model `green-linear`.
     pub green_linear: bool,
-    /// Where its Green's functions are cached.
+    /// Serve `green-tangent`, the hyperelastic model linearized about its gravity-preloaded state.
+    pub green_tangent: bool,
+    /// Where Green's functions (and the preloaded state) are cached.
     pub cache_dir: Option<PathBuf>,
     /// Where the Kelvinlet field is evaluated: cpu, gpu or auto.
     pub prior_backend: PriorBackend,
@@ -95,6 +97,7 @@ impl Default for ServeConfig {
             models: Vec::new(),
             ort_dylib: None,
             green_linear: false,
+            green_tangent: false,
             cache_dir: None,
             prior_backend: PriorBackend::Cpu,
             listen: SocketAddr::from(([127, 0, 0, 1], 50051)),

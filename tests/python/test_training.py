@@ -338,30 +338,32 @@ def test_reduced_training_beats_the_untrained_network_through_nak_eval(
     assert trained["dcm_combined"] > untrained["dcm"] + 5.0, (trained, untrained)
 
 
-def test_a_network_on_the_green_linear_prior_is_trained_and_served_on_it(
-    nak_binary: Path, coarse_data: Path, tmp_path: Path
+@pytest.mark.parametrize("prior", ["green-linear", "green-tangent"])
+def test_a_network_on_a_green_prior_is_trained_and_served_on_it(
+    nak_binary: Path, coarse_data: Path, tmp_path: Path, prior: str
 ) -> None:
-    """+Res against green-linear: training reads the prior from `nak dataset fields`, the manifest names
-    it, and nak serves green-linear + Φ g (building the Green's functions because the model needs them)."""
+    """+Res against green-linear or green-tangent: training reads the prior from `nak dataset fields`,
+    the manifest names it, and nak serves the prior + Φ g (building its Green's functions because the
+    model needs them)."""
     dataset = open_dataset(coarse_data)
-    values = dict(name="pod-green", architecture="pod", prior="green-linear", modes=8, width=32, steps=60, batch=8)
+    values = dict(name="pod-green", architecture="pod", prior=prior, modes=8, width=32, steps=60, batch=8)
     config = parse_config(tiny_config(**values), "tiny")
     run = tmp_path / "run"
     run.mkdir()
     ReducedTrainer(config, dataset, run, log=quiet, nak=Nak(nak_binary, COARSE)).run()
-    assert (run / "green-linear-train.safetensors").is_file()
+    assert (run / f"{prior}-train.safetensors").is_file()
     models = tmp_path / "models"
     export(config, dataset, run, models, log=quiet)
     manifest = tomllib.loads((models / "pod-green" / "manifest.toml").read_text())
-    assert manifest["prior"]["model"] == "green-linear"
+    assert manifest["prior"]["model"] == prior
 
     def served(model: str) -> np.ndarray:
         out = tmp_path / f"{model}.safetensors"
         args = ["dataset", "fields", "--data", str(coarse_data), "--model", model, "--split", "test"]
-        Nak(nak_binary, COARSE).run(*args, "--out", str(out), "--models", str(models), "--green-linear")
+        Nak(nak_binary, COARSE).run(*args, "--out", str(out), "--models", str(models), f"--{prior}")
         return load_file(str(out))["displacement"]
 
-    network, green = served("pod-green"), served("green-linear")
+    network, green = served("pod-green"), served(prior)
     sample = dataset.load("test").samples[0]
     interaction = np.concatenate([dataset.mesh.positions[sample.nodes].numpy(), sample.displacements], axis=1)
     session = onnxruntime.InferenceSession(str(models / "pod-green" / "model.onnx"))

@@ -38,7 +38,7 @@ def main(argv: list[str] | None = None) -> int:
         command.add_argument("--runs", type=Path, default=Path("out/runs"), help="checkpoints and logs")
         command.add_argument("--out", type=Path, default=DEFAULT_MODELS, help="where model directories go")
         command.add_argument(
-            "--nak", type=Path, default=DEFAULT_NAK, help="the nak binary (evaluate, green-linear prior)"
+            "--nak", type=Path, default=DEFAULT_NAK, help="the nak binary (evaluate, Green's-function priors)"
         )
         command.add_argument("--mesh", type=Path, default=DEFAULT_MESH, help="the dataset's mesh (evaluate)")
         command.add_argument("--steps", type=int, help="override the configuration's step count")

@@ -16,8 +16,10 @@ METHODS = {"base": "direct", "res": "residual", "reg": "direct"}
 PRECISIONS = ("f16", "f32")
 # How a reduced network's basis is shipped: a basis file nak multiplies, or folded into the graph.
 FORMS = ("basis", "graph")
-# The prior +Res learns its residual to: the Kelvinlet, or the exact linear answer nak serves.
-PRIORS = ("kelvinlet", "green-linear")
+# The prior +Res learns its residual to: the Kelvinlet, or an exact linear answer nak serves through
+# Green's functions (green-linear: linear elasticity at rest; green-tangent: the hyperelastic model
+# linearized about its gravity-preloaded state).
+PRIORS = ("kelvinlet", "green-linear", "green-tangent")
 SUBSETS = {"single": ("single",), "multi": ("multi",), "all": ("single", "multi")}
 
 

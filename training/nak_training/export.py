@@ -157,7 +157,7 @@ def checked(model: torch.nn.Module, graph: Path, inputs: list[torch.Tensor], nam
 
 
 def describe(config: TrainConfig) -> str:
-    residual = "green-linear residual" if config.prior == "green-linear" else "Kelvinlet residual"
+    residual = "Kelvinlet residual" if config.prior == "kelvinlet" else f"{config.prior} residual"
     method = {"base": "Base", "res": f"+Res ({residual})", "reg": "+Reg (Kelvinlet regularization)"}
     trained_on = {"single": "single-grasper", "multi": "two-grasper", "all": "all"}[config.subset]
     if config.reduced:

@@ -1,7 +1,7 @@
-"""Fields nak serves, for training. The exact linear answer (green-linear) lives in nak, through its
-cached Green's functions; a network trained on that prior learns its residual against exactly the field
-nak adds to it when serving, written once per split by `nak dataset fields` and kept in the run's
-directory.
+"""Fields nak serves, for training. The exact linear answers (green-linear, green-tangent) live in nak,
+through its cached Green's functions; a network trained on such a prior learns its residual against
+exactly the field nak adds to it when serving, written once per split by `nak dataset fields` and kept in
+the run's directory.
 """
 
 from __future__ import annotations

@@ -32,7 +32,7 @@ EPSILON_GRID_M = (0.01, 0.015, 0.02, 0.025, 0.03, 0.04, 0.05, 0.06, 0.08)
 FIT_SAMPLES = 400
 STN_PENALTY = 0.01
 PROGRESS_EVERY = 50
-GREEN_LINEAR = "green-linear"
+KELVINLET = "kelvinlet"
 
 
 def prior_of(mesh: Mesh, epsilon: float) -> Prior:
@@ -127,20 +127,21 @@ class Run:
         self.epsilon = float(state["epsilon"])
         self.prior = prior_of(self.mesh, self.epsilon)
         self.log(f"prior: ν = {self.prior.poisson_ratio}, ε = {self.epsilon * 100:g} cm, λ = {self.prior.lam:g}")
-        if config.method == "res" and config.prior == GREEN_LINEAR:
-            self.log("prior of the residual: green-linear, the exact linear FEM answer as nak serves it")
+        if config.method == "res" and config.prior != KELVINLET:
+            self.log(f"prior of the residual: {config.prior}, through Green's functions as nak serves it")
         self.volumes = self.mesh.nodal_volumes.float()
         self.q = QSampler(self.mesh, self.generator) if config.method == "reg" else None
 
     def residual_prior(self, split: Split, name: str) -> torch.Tensor:
         """The prior +Res learns its residual to, for every sample of `split` (drawn from split `name`):
-        the Kelvinlet at the run's ε, or green-linear's field written by nak. f32 [S, N, 3]."""
-        if self.config.prior != GREEN_LINEAR:
+        the Kelvinlet at the run's ε, or the field nak serves as green-linear or green-tangent. f32 [S, N, 3]."""
+        prior = self.config.prior
+        if prior == KELVINLET:
             return prior_fields(self.prior, self.mesh, split, batch=64)
         if self.nak is None:
-            raise TrainingInputError(self.dataset.root, "the green-linear prior needs the nak binary (--nak)")
-        self.log(f"green-linear over the {name} split ({len(split)} samples), through nak…")
-        return served_fields(self.nak, self.dataset, name, split, GREEN_LINEAR, self.run_dir)
+            raise TrainingInputError(self.dataset.root, f"the {prior} prior needs the nak binary (--nak)")
+        self.log(f"{prior} over the {name} split ({len(split)} samples), through nak…")
+        return served_fields(self.nak, self.dataset, name, split, prior, self.run_dir)
 
     def _start(self, model: torch.nn.Module) -> None:
         """Takes `model` for training and resumes from the run's checkpoint if there is one."""
