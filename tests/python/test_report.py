@@ -61,3 +61,14 @@ def test_the_learning_curve_orders_a_configurations_sizes_and_skips_other_models
     assert lines[2:] == ["| `pod-res-nl` | 200 → 60.25, 800 → 70.00, 1,577 → 75.50 |"]
     assert (tmp_path / "curve.png").is_file()
     assert learning_curve([entry("pod-base-nl", 1577, 71.0)], tmp_path / "none.png") == []
+
+
+def test_res_on_each_green_prior_gets_a_row_of_its_own() -> None:
+    def entry(name: str, dcm: float) -> Entry:
+        return Entry(name, "pod", "res", "all", 0.01, {"dcm_combined": dcm}, "nonlinear")
+
+    entries = [entry("pod-res-nl", 74.69), entry("pod-res-gl-nl", 76.76), entry("pod-res-gt-nl", 77.5)]
+    lines = table(entries, "dcm", {}, with_paper=False, regime="nonlinear")
+    rows = {line.split("|")[1].strip(): line for line in lines[2:]}
+    assert "76.76" in rows["POD basis + set encoder, +Res on green-linear (nak)"]
+    assert "77.50" in rows["POD basis + set encoder, +Res on green-tangent (nak)"]

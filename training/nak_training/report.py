@@ -98,7 +98,8 @@ def read_models(roots: list[Path]) -> list[Entry]:
 
 
 def baseline(nak: Path, data: Path, mesh: Path, model: str, epsilon: float | None = None) -> dict[str, Any]:
-    """`nak eval` of the Kelvinlet (at the mesh's ε, or another) or green-linear on the test split."""
+    """`nak eval` of the Kelvinlet (at the mesh's ε, or another), green-linear or green-tangent on the test
+    split."""
     if epsilon is None:
         return metrics_of(nak_eval(nak, data, model, mesh, None))
     with tempfile.TemporaryDirectory() as tmp:
@@ -138,14 +139,15 @@ def table(
         if all(c == "–" for c in cells):
             continue
         lines.append(f"| {label} (nak{', cpu size' if arch in SIZED else ''}) | " + " | ".join(cells) + " |")
-        # +Res on the exact linear answer instead of the Kelvinlet (configs `<arch>-res-gl…`).
-        on_green = [
-            cell(entries, arch, "res-gl", trained, subset, key, regime) if m == "res" else ""
-            for trained, subset, _ in COLUMNS
-            for m in METHODS
-        ]
-        if any(c not in ("", "–") for c in on_green):
-            lines.append(f"| {label}, +Res on green-linear (nak) | " + " | ".join(on_green) + " |")
+        # +Res on an exact linear answer instead of the Kelvinlet (configs `<arch>-res-gl…`, `-res-gt…`).
+        for method, prior in (("res-gl", "green-linear"), ("res-gt", "green-tangent")):
+            on_green = [
+                cell(entries, arch, method, trained, subset, key, regime) if m == "res" else ""
+                for trained, subset, _ in COLUMNS
+                for m in METHODS
+            ]
+            if any(c not in ("", "–") for c in on_green):
+                lines.append(f"| {label}, +Res on {prior} (nak) | " + " | ".join(on_green) + " |")
         if with_paper and arch in paper_rows:
             paper = [f"{paper_rows[arch][trained][i]:.2f}" for trained, _, _ in COLUMNS for i in range(3)]
             lines.append(f"| {label} (paper, GPU) | " + " | ".join(paper) + " |")
@@ -331,13 +333,16 @@ def ceiling_figure(entries: list[Entry], path: Path) -> list[str]:
 
 
 def regime_baselines(nak: Path, data: Path, mesh: Path, entries: list[Entry], regime: str) -> dict[str, dict[str, Any]]:
-    """The Kelvinlet at 5 cm and at every ε a model of `regime` was fitted to, and green-linear, on `data`."""
+    """The Kelvinlet at 5 cm and at every ε a model of `regime` was fitted to, green-linear and, for the
+    nonlinear regime, green-tangent, on `data`."""
     suffix = " — nonlinear" if regime == "nonlinear" else ""
     fitted = sorted({e.epsilon for e in entries if e.regime == regime and e.method != "base" and e.epsilon != 0.05})
     baselines = {f"Kelvinlet ε = 5 cm (nak){suffix}": baseline(nak, data, mesh, "kelvinlet", 0.05)}
     for eps in fitted:
         baselines[f"Kelvinlet ε = {eps * 100:g} cm (nak){suffix}"] = baseline(nak, data, mesh, "kelvinlet", eps)
     baselines[f"green-linear (exact linear FEM){suffix}"] = baseline(nak, data, mesh, "green-linear")
+    if regime == "nonlinear":
+        baselines[f"green-tangent (linearized at the preload){suffix}"] = baseline(nak, data, mesh, "green-tangent")
     return baselines
 
 
