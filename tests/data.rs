@@ -270,7 +270,23 @@ fn failed_nonlinear_samples_are_recorded_and_left_out_of_eval() {
     assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
     let all = samples(&data);
     let failed: Vec<_> = all.iter().filter(|(s, _)| s.failed()).collect();
-    assert!(!failed.is_empty(), "{}", String::from_utf8_lossy(&output.stdout));
+    let summary = String::from_utf8_lossy(&output.stdout);
+    assert!(!failed.is_empty(), "{summary}");
+    // The summary counts the failures by why they failed, and the counts add up.
+    let because = summary
+        .lines()
+        .find_map(|line| line.strip_prefix("failed because: "))
+        .unwrap_or_else(|| panic!("no failure reasons in {summary}"));
+    let counted: usize = because
+        .split("; ")
+        .map(|part| {
+            part.split(' ')
+                .next()
+                .and_then(|n| n.parse::<usize>().ok())
+                .unwrap_or(0)
+        })
+        .sum();
+    assert_eq!(counted, failed.len(), "{because}");
     for (s, field) in &failed {
         let reason = s.solver.as_ref().unwrap().failure.as_ref().unwrap();
         assert!(

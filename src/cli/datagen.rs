@@ -186,6 +186,10 @@ fn print_nonlinear_tally(t: &NonlinearTally) {
         t.cut,
         t.shifted,
     );
+    if !t.failure_reasons.is_empty() {
+        let reasons: Vec<String> = t.failure_reasons.iter().map(|(why, n)| format!("{n} {why}")).collect();
+        println!("failed because: {}", reasons.join("; "));
+    }
     let p = &t.profile;
     let total: f64 = seconds.iter().sum::<f64>().max(1e-9);
     let share = |d: std::time::Duration| 100.0 * d.as_secs_f64() / total;

@@ -1,5 +1,6 @@
 //! `nak datagen`: samples from p with finite-element ground truth, linear or nonlinear.
 
+use std::collections::BTreeMap;
 use std::path::Path;
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -10,7 +11,7 @@ use super::GraspSampler;
 use super::dataset::{self, DatasetError, DatasetInfo, SampleRecord, SolveRecord};
 use crate::fem::nonlinear::{SolveProfile, SolveStats};
 use crate::fem::preload::Preloaded;
-use crate::fem::{GreenFunctions, nodal_forces, solve_dirichlet};
+use crate::fem::{FemError, GreenFunctions, nodal_forces, solve_dirichlet};
 use crate::mesh::TetMesh;
 use crate::prior::InteractionPoints;
 
@@ -34,6 +35,8 @@ pub struct NonlinearTally {
     pub load_steps: usize,
     pub cut: usize,
     pub failed: usize,
+    /// Failed samples by why their last load step failed (inverted elements, Newton stalls, …).
+    pub failure_reasons: BTreeMap<String, usize>,
     pub shifted: usize,
     pub factorizations: usize,
     pub krylov_iterations: usize,
@@ -46,7 +49,7 @@ pub struct NonlinearTally {
 }
 
 impl NonlinearTally {
-    fn add(&mut self, stats: &SolveStats, profile: &SolveProfile, failed: bool, seconds: f64) {
+    fn add(&mut self, stats: &SolveStats, profile: &SolveProfile, failure: Option<&str>, seconds: f64) {
         self.attempted += 1;
         self.factorizations += stats.factorizations;
         self.krylov_iterations += stats.krylov_iterations;
@@ -54,7 +57,10 @@ impl NonlinearTally {
         self.newton_iterations += stats.newton_iterations;
         self.load_steps += stats.load_steps;
         self.cut += usize::from(stats.step_cuts > 0);
-        self.failed += usize::from(failed);
+        if let Some(reason) = failure {
+            self.failed += 1;
+            *self.failure_reasons.entry(reason.to_owned()).or_default() += 1;
+        }
         self.shifted += usize::from(stats.shifted_factorizations > 0);
         self.solve_seconds.push(seconds);
         self.max_newton_iterations = self.max_newton_iterations.max(stats.newton_iterations);
@@ -135,6 +141,7 @@ pub fn generate_nonlinear(
         let mut field = vec![f32::NAN; 3 * mesh.node_count()];
         let prescribed = sample.prescribed();
         let mut profile = SolveProfile::default();
+        let mut failure_reason = None;
         let record = match preloaded.grasp(&prescribed) {
             Ok(equilibrium) => {
                 profile = equilibrium.profile;
@@ -148,6 +155,10 @@ pub fn generate_nonlinear(
             }
             Err(e) => {
                 tracing::warn!(sample = sample.index, "nonlinear solve failed: {e}");
+                failure_reason = Some(match &e {
+                    FemError::NotConverged { reason, .. } => reason.clone(),
+                    other => other.to_string(),
+                });
                 SolveRecord {
                     stats: SolveStats::default(),
                     failure: Some(e.to_string()),
@@ -158,7 +169,7 @@ pub fn generate_nonlinear(
             t.add(
                 &record.stats,
                 &profile,
-                record.failure.is_some(),
+                failure_reason.as_deref(),
                 started.elapsed().as_secs_f64(),
             );
         }
