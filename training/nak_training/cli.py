@@ -4,6 +4,7 @@ python -m nak_training all --config training/configs/pointnet-reg.toml --data DA
 python -m nak_training train|export|evaluate --config C --data DATA
 python -m nak_training forms --config C --data DATA     (a reduced network's shipping forms, timed)
 python -m nak_training report --data DATA
+python -m nak_training failures --data DATA    (nonlinear failures against how deep the grasps push)
 """
 
 from __future__ import annotations
@@ -52,8 +53,15 @@ def main(argv: list[str] | None = None) -> int:
     report.add_argument("--nak", type=Path, default=DEFAULT_NAK)
     report.add_argument("--mesh", type=Path, default=DEFAULT_MESH)
     report.add_argument("--out", type=Path, default=Path("docs/models"))
+    failures = commands.add_parser("failures", help="a nonlinear dataset's failure rate by the grasps' inward push")
+    failures.add_argument("--data", type=Path, required=True, help="a nonlinear dataset made by nak datagen")
     args = parser.parse_args(argv)
     try:
+        if args.command == "failures":
+            from .failures import report as failure_report
+
+            print(failure_report(args.data))
+            return 0
         if args.command == "report":
             from .report import write_report
 

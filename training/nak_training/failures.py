@@ -1,0 +1,103 @@
+"""Where nonlinear ground truth fails: each sample's deepest inward push (the grasp displacement along
+the inward surface normal, mm, the largest over its graspers) and the failure rate in bins of it. A
+surface patch pushed centimetres into the organ compresses the tissue beneath it, where the
+Mooney–Rivlin law's volumetric term (κ/2)(J − 1)² puts no barrier before J = 0.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .dataset import _failed, _read_json, open_dataset
+from .errors import TrainingInputError
+
+# Bin edges (mm) of the deepest inward push; a pull has a negative push.
+EDGES_MM = (-np.inf, 0.0, 20.0, 40.0, 60.0, np.inf)
+
+
+@dataclass(frozen=True)
+class Outcome:
+    index: int
+    push_mm: float
+    failed: bool
+    reason: str
+
+
+@dataclass(frozen=True)
+class Bin:
+    low_mm: float
+    high_mm: float
+    samples: int
+    failed: int
+
+    @property
+    def rate(self) -> float:
+        return self.failed / self.samples if self.samples else 0.0
+
+
+def inward_push_mm(normals: np.ndarray, nodes: list[int], displacement: list[float]) -> float:
+    """How far a grasp moves its nodes into the organ: −d · n̂ for the mean outward normal n̂ of its nodes."""
+    mean = normals[nodes].mean(axis=0)
+    length = float(np.linalg.norm(mean))
+    if length == 0.0:
+        raise ValueError(f"grasp nodes {nodes} have no outward normal: not surface nodes")
+    return -1e3 * float(np.dot(displacement, mean / length))
+
+
+def why(failure: str) -> str:
+    """The reason in a solver failure ("no equilibrium at load step S (load fraction F): REASON; residual
+    history …")."""
+    after = failure.split(": ", 1)[-1]
+    return after.split("; residual history")[0]
+
+
+def outcomes(root: Path) -> list[Outcome]:
+    """Every solved sample of the dataset at `root`, with its deepest inward push and whether it failed."""
+    dataset = open_dataset(root)
+    normals = dataset.mesh.normals.numpy()
+    found = []
+    for path in sorted(root.glob("chunk-*.json")):
+        for record in _read_json(path):
+            try:
+                pushes = [inward_push_mm(normals, g["nodes"], g["displacement"]) for g in record["grasps"]]
+            except (KeyError, TypeError, ValueError, IndexError) as e:
+                raise TrainingInputError(path, f"sample {record.get('index')}: malformed grasps ({e})") from e
+            failure = str(record["solver"]["failure"]) if _failed(record) else None
+            found.append(Outcome(int(record["index"]), max(pushes), failure is not None, why(failure or "")))
+    if not found:
+        raise TrainingInputError(root, "no generated chunks")
+    return found
+
+
+def failure_bins(found: list[Outcome], edges: tuple[float, ...] = EDGES_MM) -> list[Bin]:
+    """The failure rate in each bin [low, high) of the deepest inward push."""
+    return [
+        Bin(
+            low,
+            high,
+            sum(low <= o.push_mm < high for o in found),
+            sum(low <= o.push_mm < high and o.failed for o in found),
+        )
+        for low, high in zip(edges, edges[1:], strict=False)
+    ]
+
+
+def report(root: Path) -> str:
+    found = outcomes(root)
+    lines = ["| deepest inward push (mm) | samples | failed | rate |", "|---|---|---|---|"]
+    for b in failure_bins(found):
+        if b.low_mm == -np.inf:
+            span = f"< {b.high_mm:g} (pulls)"
+        elif b.high_mm == np.inf:
+            span = f"≥ {b.low_mm:g}"
+        else:
+            span = f"{b.low_mm:g}–{b.high_mm:g}"
+        lines.append(f"| {span} | {b.samples} | {b.failed} | {100 * b.rate:.1f} % |")
+    failed = [o for o in found if o.failed]
+    lines.append(f"| all | {len(found)} | {len(failed)} | {100 * len(failed) / len(found):.1f} % |")
+    for o in failed:
+        lines.append(f"- sample {o.index}: push {o.push_mm:.1f} mm, {o.reason}")
+    return "\n".join(lines)
