@@ -63,16 +63,13 @@ impl Stiffness {
         }
     }
 
-    fn cache_file(self, mesh: &TetMesh, cache_dir: &Path) -> PathBuf {
+    /// The cache file of these Green's functions, named by the mesh and `key` (see [`Stiffness::key`]).
+    fn cache_file(self, mesh: &TetMesh, key: &str, cache_dir: &Path) -> PathBuf {
         let prefix = match self {
             Stiffness::Linear => "green",
             Stiffness::PreloadTangent => "green-tangent",
         };
-        cache_dir.join(format!(
-            "{prefix}-{}-{}.bin",
-            &mesh.content_hash[..16],
-            &self.key(mesh)[..16]
-        ))
+        cache_dir.join(format!("{prefix}-{}-{}.bin", &mesh.content_hash[..16], &key[..16]))
     }
 
     /// K with the fixed nodes eliminated, factorized. The tangent needs the preloaded state, which is
@@ -87,16 +84,6 @@ impl Stiffness {
                     .linearize(&preloaded.rest)
                     .ok_or_else(|| FemError::Assembly("the preloaded state has an inverted element".into()))?;
                 LinearSystem::from_stiffness(preloaded.solver.dofs().clone(), &tangent)
-            }
-        }
-    }
-
-    fn describe(self) -> &'static str {
-        match self {
-            Stiffness::Linear => "exact linear FEM through precomputed Green's functions (capacitance matrix)",
-            Stiffness::PreloadTangent => {
-                "the hyperelastic model linearized about its gravity-preloaded equilibrium, through \
-                 precomputed Green's functions (capacitance matrix)"
             }
         }
     }
@@ -160,7 +147,7 @@ impl GreenFunctions {
         progress: impl Fn(usize, usize) + Sync,
     ) -> Result<Self, FemError> {
         let key = stiffness.key(mesh);
-        let path = stiffness.cache_file(mesh, cache_dir);
+        let path = stiffness.cache_file(mesh, &key, cache_dir);
         if !path.exists() {
             let candidates = candidate_nodes(mesh);
             let started = Instant::now();
@@ -387,23 +374,28 @@ impl GreenModel {
 
     pub fn new(mesh: &TetMesh, green: Arc<GreenFunctions>) -> Self {
         let stiffness = green.stiffness;
-        let forces = match stiffness {
-            Stiffness::Linear => "exact: (G[S,S])⁻¹ u_S, the linear FEM's K·u at the held nodes",
-            Stiffness::PreloadTangent => {
+        let (description, regime, forces, forces_text) = match stiffness {
+            Stiffness::Linear => (
+                "exact linear FEM through precomputed Green's functions (capacitance matrix)",
+                "linear",
+                Forces::Exact,
+                "exact: (G[S,S])⁻¹ u_S, the linear FEM's K·u at the held nodes",
+            ),
+            Stiffness::PreloadTangent => (
+                "the hyperelastic model linearized about its gravity-preloaded equilibrium, through \
+                 precomputed Green's functions (capacitance matrix)",
+                "nonlinear",
+                Forces::Estimate,
                 "(G[S,S])⁻¹ u_S, the tangent's K·u at the held nodes: the change of the held nodes' \
-                 force from the preloaded state, exact for small grasps"
-            }
+                 force from the preloaded state, exact for small grasps",
+            ),
         };
         let metadata = BTreeMap::from([
-            ("description".to_owned(), stiffness.describe().to_owned()),
+            ("description".to_owned(), description.to_owned()),
             ("candidate_nodes".to_owned(), green.candidates.len().to_string()),
-            ("forces".to_owned(), forces.to_owned()),
+            ("forces".to_owned(), forces_text.to_owned()),
             ("cache".to_owned(), green.path.display().to_string()),
         ]);
-        let (regime, forces) = match stiffness {
-            Stiffness::Linear => ("linear", Forces::Exact),
-            Stiffness::PreloadTangent => ("nonlinear", Forces::Estimate),
-        };
         Self {
             info: ModelInfo {
                 name: stiffness.model_name().to_owned(),

@@ -101,13 +101,13 @@ class Dataset:
             records_path = self.root / f"chunk-{chunk:05d}.json"
             if not records_path.is_file():
                 continue
-            records = _read_json(records_path)
+            records = read_json(records_path)
             if not isinstance(records, list):
                 raise TrainingInputError(records_path, "expected a list of samples")
             wanted = [
                 i
                 for i, r in enumerate(records)
-                if r.get("split") == split and r.get("subset") in subsets and not _failed(r)
+                if r.get("split") == split and r.get("subset") in subsets and not is_failed(r)
             ]
             if not wanted:
                 continue
@@ -135,7 +135,7 @@ class Dataset:
         return field
 
 
-def _failed(record: dict[str, Any]) -> bool:
+def is_failed(record: dict[str, Any]) -> bool:
     solver = record.get("solver")
     return isinstance(solver, dict) and solver.get("failure") is not None
 
@@ -155,7 +155,7 @@ def _sample(record: dict[str, Any], origin: Path) -> Sample:
         raise TrainingInputError(origin, f"sample {record.get('index')}: malformed grasps ({e})") from e
 
 
-def _read_json(path: Path) -> Any:
+def read_json(path: Path) -> Any:
     try:
         return json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as e:
@@ -164,7 +164,7 @@ def _read_json(path: Path) -> Any:
 
 def open_dataset(root: Path) -> Dataset:
     """Reads `dataset.json` and `mesh.safetensors`, checking that they describe the same mesh."""
-    info = _read_json(root / "dataset.json")
+    info = read_json(root / "dataset.json")
     for key in ("mesh_name", "mesh_hash", "node_count", "regime", "seed", "single", "multi", "chunk_size"):
         if key not in info:
             raise TrainingInputError(root / "dataset.json", f"missing key {key!r}: not a nak dataset")

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .dataset import _failed, _read_json, open_dataset
+from .dataset import is_failed, open_dataset, read_json
 from .errors import TrainingInputError
 
 # Bin edges (mm) of the deepest inward push; a pull has a negative push.
@@ -60,12 +60,12 @@ def outcomes(root: Path) -> list[Outcome]:
     normals = dataset.mesh.normals.numpy()
     found = []
     for path in sorted(root.glob("chunk-*.json")):
-        for record in _read_json(path):
+        for record in read_json(path):
             try:
                 pushes = [inward_push_mm(normals, g["nodes"], g["displacement"]) for g in record["grasps"]]
             except (KeyError, TypeError, ValueError, IndexError) as e:
                 raise TrainingInputError(path, f"sample {record.get('index')}: malformed grasps ({e})") from e
-            failure = str(record["solver"]["failure"]) if _failed(record) else None
+            failure = str(record["solver"]["failure"]) if is_failed(record) else None
             found.append(Outcome(int(record["index"]), max(pushes), failure is not None, why(failure or "")))
     if not found:
         raise TrainingInputError(root, "no generated chunks")
