@@ -18,7 +18,7 @@ use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::FemError;
-use super::factor::{Factor, Krylov, TangentFactor};
+use super::factor::{Factor, Krylov, Precision, TangentFactor};
 use super::hyperelastic::{MooneyRivlin, TangentTerms};
 use super::linear::{DofMap, shape_gradients};
 use super::ordering::nested_dissection;
@@ -379,6 +379,12 @@ impl Hyperelastic {
         &self.dofs
     }
 
+    /// An empty factor of this mesh's tangent pattern, in the ordering and supernodes every solve
+    /// uses: what a Newton solve factorizes and preconditions with, for benchmarks of those parts.
+    pub fn tangent_factor<T: Precision>(&self) -> TangentFactor<T> {
+        TangentFactor::new(self.symbolic.clone())
+    }
+
     /// The tangent on the unknowns (no constraints applied) and the internal force of every node at
     /// `u`; `None` if an element is inverted.
     pub fn linearize(&self, u: &[[f64; 3]]) -> Option<Linearized> {
@@ -453,9 +459,9 @@ impl Hyperelastic {
             profile: SolveProfile::default(),
             trace: Vec::new(),
             factor: if self.options.reuse_factorization {
-                Box::new(TangentFactor::<f32>::new(self.symbolic.clone()))
+                Box::new(self.tangent_factor::<f32>())
             } else {
-                Box::new(TangentFactor::<f64>::new(self.symbolic.clone()))
+                Box::new(self.tangent_factor::<f64>())
             },
             tangent: vec![0.0; self.pattern.row_idx().len()],
             refactor: false,
