@@ -4,8 +4,8 @@
 //! Why not faer: at the sizes a request brings (3K = 30…150) its general, recursive kernels spend
 //! most of their time choosing paths: the K = 20 solve (60 unknowns, about 144,000 FMAs) took
 //! 22.7 µs with faer 0.24 and takes 12 µs with these (`cargo bench --bench prior` at commit 22d1888
-//! and after, 2-vCPU Xeon with AVX-512). Here the O(n³) loops hold a 16-row × 4-column block of the output in registers
-//! while the columns it depends on stream past: each loaded chunk feeds four FMAs, eight
+//! and after, 2-vCPU Xeon with AVX-512). Here the O(n³) loops hold an 8-row × 4-column block of the
+//! output in registers while the columns it depends on stream past: each loaded chunk feeds four FMAs, eight
 //! independent sums hide the FMA latency, and no horizontal sums or store-to-load chains sit in
 //! the inner loop. The functions are compiled for AVX-512 and AVX2 and picked at run time, like the
 //! field kernel.
@@ -15,7 +15,10 @@
 //! here), so the two public entry points hand large systems to faer.
 //!
 //! Storage: [`Dense`] matrices are column-major and padded with zero rows and columns to a
-//! multiple of [`LANES`], which every kernel keeps zero, so no loop needs a tail.
+//! multiple of [`LANES`], which every kernel keeps zero, so no loop needs a tail. One padding row
+//! lies below the last block of [`COLUMNS`] columns: the border row, through which a right-hand
+//! side rides along the factorization (see [`cholesky_solve`]); products stop at the chunk holding
+//! row `n − 1`, so the border costs them nothing.
 
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::cholesky::llt::factor::{LltError, LltRegularization, cholesky_in_place, cholesky_in_place_scratch};
@@ -26,8 +29,13 @@ use multiversion::multiversion;
 /// Unknowns (3K) above which faer's kernels are faster than these (measured between K = 48 and 56).
 const LARGE: usize = 150;
 
-/// Lanes per chunk: one AVX-512 register of f64 (two AVX2 ones).
-const LANES: usize = 8;
+/// Rows per chunk: one AVX2 register of f64 (two chunks fill an AVX-512 one, and the compiler pairs
+/// them). Four rather than eight because the first chunk of a block holds its diagonal and the last
+/// one row `n − 1`: with eight-row chunks a 60-unknown Gram spent a sixth of its FMAs on rows
+/// above the diagonal and on padding. Four-row chunks made the K = 20 solve 18 % faster on a
+/// 2-vCPU AMD EPYC (`cargo bench --bench prior -- prior/solve/`), where 256-bit FMAs have the
+/// 512-bit ones' throughput per lane.
+const LANES: usize = 4;
 
 /// Output columns computed together: each loaded chunk of an input column is used this many times.
 const COLUMNS: usize = 4;
@@ -44,7 +52,7 @@ impl Dense {
     /// Resizes to `n × n` and zeroes the padding; the other entries keep stale values until written.
     pub fn reset(&mut self, n: usize) {
         self.n = n;
-        self.stride = n.next_multiple_of(LANES);
+        self.stride = (Self::border_row(n) + 1).next_multiple_of(LANES);
         self.values.resize(self.stride * self.stride, 0.0);
         for (col, column) in self.values.chunks_exact_mut(self.stride).enumerate() {
             let from = if col < n { n } else { 0 };
@@ -58,6 +66,12 @@ impl Dense {
         let (head, rest) = self.values[first * stride..].split_at_mut(step * stride);
         let (middle, last) = rest.split_at_mut(step * stride);
         [&mut head[..n], &mut middle[..n], &mut last[..n]]
+    }
+
+    /// The padding row below the last block of columns that the factorization updates like any
+    /// row of the matrix.
+    fn border_row(n: usize) -> usize {
+        n.next_multiple_of(COLUMNS)
     }
 
     pub fn set(&mut self, row: usize, col: usize, value: f64) {
@@ -167,9 +181,8 @@ pub fn gram_lower(g: &Dense, out: &mut Dense) {
 #[multiversion(targets("x86_64+avx512f+avx512vl+avx2+fma", "x86_64+avx2+fma", "aarch64+neon"))]
 fn gram_lower_blocked(g: &Dense, out: &mut Dense) {
     let n = g.n;
-    let stride = g.stride;
     for first in (0..n).step_by(COLUMNS) {
-        for_row_groups!(first / LANES * LANES, stride, |row, acc| {
+        for_row_groups!(first / LANES * LANES, n.next_multiple_of(LANES), |row, acc| {
             accumulate(g, row, first, 0..n, 1.0, &mut acc);
             for (c, sums) in acc.iter().enumerate() {
                 out.column_mut(first + c)[row..][..sums.len() * LANES].copy_from_slice(sums.as_flattened());
@@ -201,8 +214,8 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
     }
     let tail: f64 = a_tail.iter().zip(b_tail).map(|(x, y)| x * y).sum();
     // A tree, not a chain: three dependent additions instead of seven.
-    let [s0, s1, s2, s3, s4, s5, s6, s7]: [f64; LANES] = std::array::from_fn(|lane| even[lane] + odd[lane]);
-    ((s0 + s4) + (s1 + s5)) + ((s2 + s6) + (s3 + s7)) + tail
+    let [s0, s1, s2, s3]: [f64; LANES] = std::array::from_fn(|lane| even[lane] + odd[lane]);
+    ((s0 + s2) + (s1 + s3)) + tail
 }
 
 /// `G u` into `out` (`n` values), as `Σ_l G[:, l] u_l`: whole columns scaled and added, each row
@@ -225,12 +238,36 @@ pub struct NotPositiveDefinite {
     pub index: usize,
 }
 
-/// Overwrites the lower triangle of the symmetric positive definite `a` with `L`, `L Lᵀ = A`,
-/// leaving the entries above the diagonal unspecified, and `inverse_pivots` with `1 / L[j, j]`.
-pub fn cholesky_lower(a: &mut Dense, inverse_pivots: &mut Vec<f64>) -> Result<(), NotPositiveDefinite> {
-    if a.n <= LARGE {
-        return cholesky_lower_blocked(a, inverse_pivots);
+/// Solves `A x = b` in place (`n` values) for the symmetric positive definite `a`, given by its
+/// lower triangle, which is overwritten with the Cholesky factor `L` (`L Lᵀ = A`; the entries above
+/// the diagonal are left unspecified); `inverse_pivots` receives `1 / L[j, j]`.
+///
+/// For small systems `b` rides through the factorization in the border row, as the last row of
+/// `[A b; bᵀ ·]`: the factor's row there is `L⁻¹ b`, computed by the same vectorized updates as the
+/// rows of `L`, where a separate forward substitution would be a chain of dependent steps.
+pub fn cholesky_solve(a: &mut Dense, b: &mut [f64], inverse_pivots: &mut Vec<f64>) -> Result<(), NotPositiveDefinite> {
+    let n = a.n;
+    if n > LARGE {
+        cholesky_large(a, inverse_pivots)?;
+        forward_substitution(a, inverse_pivots, b);
+    } else {
+        let border = Dense::border_row(n);
+        for (j, &value) in b[..n].iter().enumerate() {
+            a.set(border, j, value);
+        }
+        let factorized = cholesky_lower_blocked(a, inverse_pivots);
+        for (j, value) in b[..n].iter_mut().enumerate() {
+            *value = a.get(border, j);
+            a.set(border, j, 0.0);
+        }
+        factorized?;
     }
+    backward_substitution(a, inverse_pivots, b);
+    Ok(())
+}
+
+/// The Cholesky factor of a large system, by faer's cache-blocked kernel.
+fn cholesky_large(a: &mut Dense, inverse_pivots: &mut Vec<f64>) -> Result<(), NotPositiveDefinite> {
     let n = a.n;
     let mut scratch = MemBuffer::new(cholesky_in_place_scratch::<f64>(n, Par::Seq, Default::default()));
     let regularization = LltRegularization::default();
@@ -249,7 +286,8 @@ pub fn cholesky_lower(a: &mut Dense, inverse_pivots: &mut Vec<f64>) -> Result<()
     Ok(())
 }
 
-/// [`cholesky_lower`] for small systems: left-looking, four columns at a time. The block first takes
+/// The Cholesky factor of a small system, in place with its rows down to the stride (the border
+/// row among them): left-looking, four columns at a time. The block first takes
 /// the products of every finished column at once (`S = A[:, j] − Σ_{p<first} L[:, p] L[j, p]`, the
 /// O(n³) part); then its 4 × 4 diagonal is factorized, and the rows below solve
 /// `L[r, block] · L_blockᵀ = S[r, block]`, every row independently of the others.
@@ -314,12 +352,11 @@ fn cholesky_lower_blocked(a: &mut Dense, inverse_pivots: &mut Vec<f64>) -> Resul
     Ok(())
 }
 
-/// Solves `L Lᵀ x = b` in place (`n` values) for the factor and inverse pivots from
-/// [`cholesky_lower`].
+/// Solves `L y = b` in place (`n` values), by columns: once `y_j` is known, its share is removed
+/// from the rows below.
 #[multiversion(targets("x86_64+avx512f+avx512vl+avx2+fma", "x86_64+avx2+fma", "aarch64+neon"))]
-pub fn cholesky_solve_lower(l: &Dense, inverse_pivots: &[f64], b: &mut [f64]) {
+fn forward_substitution(l: &Dense, inverse_pivots: &[f64], b: &mut [f64]) {
     let n = l.n;
-    // L y = b, forward by columns: once y_j is known, remove its share from the rows below.
     for j in 0..n {
         let column = &l.column(j)[..n];
         let (solved, below) = b[..n].split_at_mut(j + 1);
@@ -329,11 +366,26 @@ pub fn cholesky_solve_lower(l: &Dense, inverse_pivots: &[f64], b: &mut [f64]) {
             *r = (-y).mul_add(*c, *r);
         }
     }
-    // Lᵀ x = y, backward: x_j = (y_j − L[j+1.., j] · x[j+1..]) / L[j, j].
-    for j in (0..n).rev() {
-        let column = &l.column(j)[..n];
-        let (head, solved) = b[..n].split_at_mut(j + 1);
-        head[j] = (head[j] - dot(&column[j + 1..], solved)) * inverse_pivots[j];
+}
+
+/// Solves `Lᵀ x = y` in place (`n` values), [`COLUMNS`] rows at a time from the bottom:
+/// `x_j = (y_j − L[j+1.., j] · x[j+1..]) / L[j, j]`. The products with the rows below the block are
+/// independent of each other and run side by side; only the few within the block form a chain.
+#[multiversion(targets("x86_64+avx512f+avx512vl+avx2+fma", "x86_64+avx2+fma", "aarch64+neon"))]
+fn backward_substitution(l: &Dense, inverse_pivots: &[f64], b: &mut [f64]) {
+    let n = l.n;
+    for first in (0..n).step_by(COLUMNS).rev() {
+        let end = (first + COLUMNS).min(n);
+        let (head, solved) = b[..n].split_at_mut(end);
+        let mut rest: [f64; COLUMNS] = [0.0; COLUMNS];
+        for (j, r) in (first..end).zip(&mut rest) {
+            *r = head[j] - dot(&l.column(j)[end..n], solved);
+        }
+        for j in (first..end).rev() {
+            let column = l.column(j);
+            let within: f64 = (j + 1..end).map(|i| column[i] * head[i]).sum();
+            head[j] = (rest[j - first] - within) * inverse_pivots[j];
+        }
     }
 }
 
@@ -414,8 +466,10 @@ mod tests {
                 .expect("SPD")
                 .solve(Mat::from_fn(n, 1, |i, _| b[i]));
             let mut x = b.clone();
-            cholesky_lower(&mut a, &mut inverse_pivots).expect("SPD");
-            cholesky_solve_lower(&a, &inverse_pivots, &mut x);
+            cholesky_solve(&mut a, &mut x, &mut inverse_pivots).expect("SPD");
+            // The border row that carried b is zero again, as all padding must be.
+            let border = Dense::border_row(n);
+            assert!((0..n).all(|j| a.get(border, j) == 0.0), "n {n}: border row left dirty");
             // Both are backward stable; their answers differ by about cond(A)·ε, with cond(A) up to
             // about 1e6 here (the largest eigenvalue of G², over λ).
             let scale = want.col(0).iter().fold(0.0f64, |m, v| m.max(v.abs()));
@@ -439,7 +493,7 @@ mod tests {
             a.set(1, 0, entries[1]);
             a.set(1, 1, entries[2]);
             assert_eq!(
-                cholesky_lower(&mut a, &mut inverse_pivots),
+                cholesky_solve(&mut a, &mut [1.0, 1.0], &mut inverse_pivots),
                 Err(NotPositiveDefinite { index })
             );
         }

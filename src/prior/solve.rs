@@ -10,7 +10,7 @@
 
 use multiversion::multiversion;
 
-use super::dense::{Dense, cholesky_lower, cholesky_solve_lower, gram_lower, times};
+use super::dense::{Dense, cholesky_solve, gram_lower, times};
 use super::{InteractionPoints, Kelvinlet};
 
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -57,6 +57,8 @@ impl Coefficients {
 #[derive(Debug, Default)]
 pub struct Workspace {
     points: PointColumns,
+    /// Scratch for [`assemble`]: one point's offsets and scales from every point.
+    scratch: Vec<f64>,
     gamma: Dense,
     normal: Dense,
     displacements: Vec<f64>,
@@ -80,7 +82,7 @@ impl Kelvinlet {
         }
         let gamma = &mut ws.gamma;
         ws.points.load(points);
-        assemble(self, &ws.points, gamma);
+        assemble(self, &ws.points, &mut ws.scratch, gamma);
         // Lower triangle of ΓΓ + λI (ΓᵀΓ = ΓΓ, Γ symmetric); the upper one is never read.
         gram_lower(gamma, &mut ws.normal);
         for d in 0..n {
@@ -93,9 +95,8 @@ impl Kelvinlet {
         }
         ws.rhs.resize(n, 0.0);
         times(gamma, &ws.displacements, &mut ws.rhs);
-        cholesky_lower(&mut ws.normal, &mut ws.inverse_pivots)
+        cholesky_solve(&mut ws.normal, &mut ws.rhs, &mut ws.inverse_pivots)
             .map_err(|_| SolveError::NotPositiveDefinite { points: k })?;
-        cholesky_solve_lower(&ws.normal, &ws.inverse_pivots, &mut ws.rhs);
         for j in 0..k {
             let kj = [ws.rhs[j], ws.rhs[k + j], ws.rhs[2 * k + j]];
             self.push_coefficient(ws, points.positions[j], kj);
@@ -114,30 +115,41 @@ impl Kelvinlet {
     }
 }
 
-/// The interaction points by coordinate.
+/// Lanes of the assembly's chunks: one AVX-512 register of f64.
+const LANES: usize = 8;
+
+/// The interaction points by coordinate, each padded with zeros to whole chunks of [`LANES`].
 #[derive(Debug, Default)]
 struct PointColumns {
+    len: usize,
     position: [Vec<f64>; 3],
 }
 
 impl PointColumns {
     fn load(&mut self, points: &InteractionPoints) {
+        self.len = points.len();
+        let padded = self.len.next_multiple_of(LANES);
         for (c, coordinate) in self.position.iter_mut().enumerate() {
             coordinate.clear();
             coordinate.extend(points.positions.iter().map(|p| p[c]));
+            coordinate.resize(padded, 0.0);
         }
     }
 }
 
 /// Fills `gamma` (component-major, `3K × 3K`) with `Γ(x_i − x_j)`: the column of point `j`,
 /// component `b`, holds `s·[(a/r_ε + b/r_ε³) δ_ab + r_a r_b / r_ε³]` at the row of point `i`,
-/// component `a` ([`Kelvinlet::response`] entry by entry). Point `j`'s three columns are written in
-/// one pass over the points, nine runs at once.
+/// component `a` ([`Kelvinlet::response`] entry by entry). For each point `j`, the square roots and
+/// divisions run first, over whole chunks of points into `scratch` (the padding points' values are
+/// finite, since ε > 0, and unused): a loop that vectorizes without a scalar tail, where the
+/// expensive operations sat in the tail of one loop over `K` points. The nine runs of the columns
+/// are then two multiplications per entry.
 #[multiversion(targets("x86_64+avx512f+avx512vl+avx2+fma", "x86_64+avx2+fma", "aarch64+neon"))]
-fn assemble(kelvinlet: &Kelvinlet, p: &PointColumns, gamma: &mut Dense) {
-    let [px, py, pz] = &p.position;
-    let k = px.len();
+fn assemble(kelvinlet: &Kelvinlet, p: &PointColumns, scratch: &mut Vec<f64>, gamma: &mut Dense) {
+    let k = p.len;
+    let padded = p.position[0].len();
     gamma.reset(3 * k);
+    scratch.resize(5 * padded, 0.0);
     let Kelvinlet {
         scale,
         a,
@@ -145,37 +157,39 @@ fn assemble(kelvinlet: &Kelvinlet, p: &PointColumns, gamma: &mut Dense) {
         epsilon_sq,
         ..
     } = *kelvinlet;
-    let (px, py, pz) = (&px[..k], &py[..k], &pz[..k]);
+    let [px, py, pz] = p.position.each_ref().map(|c| c.as_chunks::<LANES>().0);
     for j in 0..k {
-        let [x_column, y_column, z_column] = gamma.strided_columns_mut(j, k);
-        let [xx, yx, zx] = segments(x_column, k);
-        let [xy, yy, zy] = segments(y_column, k);
-        let [xz, yz, zz] = segments(z_column, k);
-        let (xj, yj, zj) = (px[j], py[j], pz[j]);
-        for i in 0..k {
-            let (rx, ry, rz) = (px[i] - xj, py[i] - yj, pz[i] - zj);
-            let inverse = 1.0 / (rx * rx + ry * ry + rz * rz + epsilon_sq).sqrt();
-            let inverse_cubed = inverse * inverse * inverse;
-            let diagonal = scale * (a * inverse + b * inverse_cubed);
-            let along = scale * inverse_cubed;
-            let (ax, ay, az) = (along * rx, along * ry, along * rz);
-            xx[i] = ax * rx + diagonal;
-            yx[i] = ay * rx;
-            zx[i] = az * rx;
-            xy[i] = ax * ry;
-            yy[i] = ay * ry + diagonal;
-            zy[i] = az * ry;
-            xz[i] = ax * rz;
-            yz[i] = ay * rz;
-            zz[i] = az * rz + diagonal;
+        let (xj, yj, zj) = (p.position[0][j], p.position[1][j], p.position[2][j]);
+        let (chunks, _) = scratch.as_chunks_mut::<LANES>();
+        let (r, rest) = chunks.split_at_mut(3 * padded / LANES);
+        let (along, diagonal) = rest.split_at_mut(padded / LANES);
+        let (rx, rest) = r.split_at_mut(padded / LANES);
+        let (ry, rz) = rest.split_at_mut(padded / LANES);
+        for c in 0..padded / LANES {
+            rx[c] = std::array::from_fn(|l| px[c][l] - xj);
+            ry[c] = std::array::from_fn(|l| py[c][l] - yj);
+            rz[c] = std::array::from_fn(|l| pz[c][l] - zj);
+            let inverse: [f64; LANES] = std::array::from_fn(|l| {
+                1.0 / (rx[c][l] * rx[c][l] + ry[c][l] * ry[c][l] + rz[c][l] * rz[c][l] + epsilon_sq).sqrt()
+            });
+            along[c] = std::array::from_fn(|l| scale * inverse[l] * inverse[l] * inverse[l]);
+            diagonal[c] = std::array::from_fn(|l| scale * a * inverse[l] + b * along[c][l]);
+        }
+        let run = |i: usize| &scratch[i * padded..i * padded + k];
+        let (r, along, diagonal) = ([run(0), run(1), run(2)], run(3), run(4));
+        for (col, column) in gamma.strided_columns_mut(j, k).into_iter().enumerate() {
+            for (row, segment) in column.chunks_exact_mut(k).enumerate() {
+                let entries = segment.iter_mut().zip(along).zip(r[row].iter().zip(r[col]));
+                if row == col {
+                    for (((entry, along), (x, _)), d) in entries.zip(diagonal) {
+                        *entry = along * x * x + d;
+                    }
+                } else {
+                    for ((entry, along), (x, y)) in entries {
+                        *entry = along * x * y;
+                    }
+                }
+            }
         }
     }
-}
-
-/// A component-major column's three runs of `k` rows (x, y, z).
-#[inline(always)]
-fn segments(column: &mut [f64], k: usize) -> [&mut [f64]; 3] {
-    let (x, rest) = column.split_at_mut(k);
-    let (y, z) = rest.split_at_mut(k);
-    [x, y, &mut z[..k]]
 }
