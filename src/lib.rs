@@ -5,6 +5,7 @@
 
 pub mod bench;
 pub mod client;
+pub mod cpu_idle;
 pub mod data;
 pub mod engine;
 pub mod fem;

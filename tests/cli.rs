@@ -266,3 +266,34 @@ fn serve_checks_the_token_exports_metrics_and_warns_when_exposed_without_tls() {
     let (exit, rest) = server.stop();
     assert!(exit.success(), "exit {exit:?}; log: {rest:?}");
 }
+
+#[test]
+fn poll_idle_cpus_holds_a_zero_latency_request_while_the_server_runs() {
+    let device = nak::cpu_idle::CPU_LATENCY_DEVICE;
+    let permitted = std::fs::OpenOptions::new().write(true).open(device).is_ok();
+    if !permitted {
+        // Without the right to ask, the server must say so and not start.
+        let output = nak()
+            .args(["serve", "--listen", "127.0.0.1:0", "--poll-idle-cpus"])
+            .output()
+            .unwrap();
+        assert!(!output.status.success());
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(stderr.contains(device), "{stderr}");
+        return;
+    }
+    let bound_before = nak::cpu_idle::current_bound_us().unwrap();
+    let mut serve = nak();
+    serve.args(["serve", "--poll-idle-cpus"]);
+    let server = ServeProcess::start(serve);
+    // Logged before the engine loads, so among the lines read while waiting for "listening".
+    let announced = server.log().iter().any(|l| l.contains("idle CPUs poll instead of halting"));
+    assert!(announced, "{:#?}", server.log());
+    assert_eq!(nak::cpu_idle::current_bound_us().unwrap(), 0);
+    let (exit, rest) = server.stop();
+    assert!(exit.success(), "exit {exit:?}; log: {rest:?}");
+    // The kernel drops the request with the process (unless someone else held one already).
+    if bound_before != 0 {
+        assert_eq!(nak::cpu_idle::current_bound_us().unwrap(), bound_before);
+    }
+}

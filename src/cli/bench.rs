@@ -6,6 +6,7 @@ use std::time::Duration;
 use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
 use nak::bench::{self, BenchConfig, Mode};
+use nak::cpu_idle::PollingIdle;
 
 use super::connect::ConnectArgs;
 
@@ -45,6 +46,11 @@ pub struct BenchArgs {
     /// Write the report as JSON here.
     #[arg(long)]
     output: Option<PathBuf>,
+    /// Keep this machine's idle CPUs polling instead of halting during the test (as `nak serve
+    /// --poll-idle-cpus` does; needs root): for a load generator on a machine of its own, whose
+    /// wake-ups on each answer would otherwise count as the server's latency.
+    #[arg(long)]
+    poll_idle_cpus: bool,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -83,6 +89,7 @@ fn parse_duration(text: &str) -> Result<Duration, String> {
 }
 
 pub fn run(args: BenchArgs) -> anyhow::Result<()> {
+    let _idle_polling = args.poll_idle_cpus.then(PollingIdle::request).transpose()?;
     let config = BenchConfig {
         connection: args.connection.config(),
         model: args.model,

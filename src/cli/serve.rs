@@ -7,6 +7,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 
 use anyhow::Context;
+use nak::cpu_idle::PollingIdle;
 use nak::engine::Engine;
 use nak::record::{Payload, Recorder};
 use nak::serve::security::read_token;
@@ -74,6 +75,12 @@ pub struct ServeArgs {
     /// requests and refuse them under overload (Linux niceness, 0 to 19) [default: 5].
     #[arg(long, value_parser = clap::value_parser!(i32).range(0..=19))]
     compute_niceness: Option<i32>,
+    /// Keep idle CPUs polling instead of halting while the server runs (a CPU latency QoS request of
+    /// 0 µs through /dev/cpu_dma_latency; needs root): a request or answer that wakes an idle CPU
+    /// then waits microseconds instead of tens, and idle CPUs run at full power. docs/latency.md
+    /// measures both.
+    #[arg(long)]
+    poll_idle_cpus: bool,
     #[command(flatten)]
     models: ModelArgs,
     /// Record every exchange to MCAP files in this directory (open them in Foxglove or with `nak replay`).
@@ -102,6 +109,11 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
     let tls = config.tls_files().server_config()?;
     let auth_token = config.auth_token_file.as_deref().map(read_token).transpose()?;
     serve::start_compute_pool(config.compute_niceness).context("cannot start the compute pool")?;
+    // Held until the server stops; the kernel drops the request with the file.
+    let idle_polling = config.poll_idle_cpus.then(PollingIdle::request).transpose()?;
+    if idle_polling.is_some() {
+        info!("idle CPUs poll instead of halting while the server runs");
+    }
     let engine = Arc::new(build_engine(&config)?);
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
@@ -167,6 +179,7 @@ fn serve_config(args: ServeArgs) -> anyhow::Result<ServeConfig> {
     config.max_message_bytes = args.max_message_bytes.unwrap_or(config.max_message_bytes);
     config.max_in_flight = args.max_in_flight.unwrap_or(config.max_in_flight);
     config.compute_niceness = args.compute_niceness.unwrap_or(config.compute_niceness);
+    config.poll_idle_cpus |= args.poll_idle_cpus;
     anyhow::ensure!(
         (0..=19).contains(&config.compute_niceness),
         "compute_niceness {} is out of range: 0 (level with the runtime) to 19",
