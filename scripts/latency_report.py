@@ -124,16 +124,33 @@ def wake_round_trip_us(cpu_a: int, cpu_b: int, rounds: int = 20_000) -> float:
     return elapsed / rounds / 1e3
 
 
+@dataclass(frozen=True)
+class Server:
+    key: str
+    label: str
+    build: str
+    flags: list[str]
+
+
+SERVERS = [
+    Server("before", "before", "before", []),
+    Server("after", "after", "after", []),
+    Server("polling", "after, idle CPUs polling", "after", ["--poll-idle-cpus"]),
+]
+
+
 def measure(args: argparse.Namespace) -> None:
     data: Path = args.data
     data.mkdir(parents=True, exist_ok=True)
     results: dict[str, Any] = {}
-    for side, binary in [("before", args.before), ("after", args.after)]:
+    for server_kind in SERVERS:
+        side = server_kind.key
+        binary = args.before if server_kind.build == "before" else args.after
         command = [str(binary), "serve", "--listen", f"127.0.0.1:{PORT}", "--log-format", "json"]
-        server = local_server.start(command, data / f"server-{side}.log")
+        server = local_server.start(command + server_kind.flags, data / f"server-{side}.log")
         try:
             for load in LOADS:
-                print(f"{side}: {load.label}", flush=True)
+                print(f"{server_kind.label}: {load.label}", flush=True)
                 results[f"{side}/bench/{load.key}"] = nak_bench(
                     args.after, load, data / f"{side}-{load.key}.json", args.seconds
                 )
@@ -145,6 +162,9 @@ def measure(args: argparse.Namespace) -> None:
                 results["after/old-bench/unary-1k"] = nak_bench(
                     args.before, unary, data / "old-bench.json", args.seconds
                 )
+            if side == "polling":
+                # The server's request holds for the whole machine while it runs.
+                results["wake_round_trip_us_polling"] = wake_round_trip_us(0, 1)
         finally:
             server.terminate()
             server.wait(timeout=30)
@@ -177,15 +197,15 @@ def render(args: argparse.Namespace) -> None:
     for load in LOADS:
         for client in ["bench", "python"]:
             name = "nak bench" if client == "bench" else "Python grpcio"
-            cells = []
-            for side in ["before", "after"]:
-                r = results[f"{side}/{client}/{load.key}"]
+            for server_kind in SERVERS:
+                r = results[f"{server_kind.key}/{client}/{load.key}"]
                 lat, srv = r["latency_us"], r["server_us"]
-                cells += [lat["p50"], lat["p99"], srv["p50"], lat["p50"] - srv["p50"]]
-            rows.append((load.label, name, cells))
+                cells = [lat["p50"], lat["p99"], srv["p50"], lat["p50"] - srv["p50"]]
+                rows.append((load.label, name, server_kind.label, cells))
     stages = "\n".join(
-        "| {} | {:.0f} | {:.0f} | {:.0f} | {:.0f} | {:.0f} |".format(
+        "| {} | {} | {:.0f} | {:.0f} | {:.0f} | {:.0f} | {:.0f} |".format(
             load.label,
+            server_kind.label,
             r["latency_us"]["p50"],
             r["generator_us"]["p50"],
             r["server_us"]["p50"],
@@ -193,39 +213,38 @@ def render(args: argparse.Namespace) -> None:
             r["latency_us"]["p50"] - r["generator_us"]["p50"] - r["server_us"]["p50"],
         )
         for load in LOADS
-        for r in [results[f"after/bench/{load.key}"]]
+        for server_kind in SERVERS[1:]
+        for r in [results[f"{server_kind.key}/bench/{load.key}"]]
     )
     old = results["after/old-bench/unary-1k"]
     new = results["after/bench/unary-1k"]
     wake = results["wake_round_trip_us"]
     closed, one_cpu = results["after/bench/unary-closed"], results["after/bench-one-cpu/unary-closed"]
+    polled = results["polling/bench/unary-closed"]
 
     def gap(r: dict[str, Any]) -> float:
         return float(r["latency_us"]["p50"] - r["server_us"]["p50"])
 
     table = "\n".join(
-        f"| {label} | {client} | " + " | ".join(f"{v:.0f}" for v in cells) + " |" for label, client, cells in rows
+        f"| {label} | {client} | {server} | " + " | ".join(f"{v:.0f}" for v in cells) + " |"
+        for label, client, server, cells in rows
     )
     fig, axes = plt.subplots(1, len(LOADS), figsize=(11, 3.6), sharey=True)
+    colours = {"before": ("#c44e52", "#7a1f22"), "after": ("#4c72b0", "#1f3a66"), "polling": ("#55a868", "#2d5e3a")}
+    width = 0.8 / len(SERVERS)
     for ax, load in zip(axes, LOADS, strict=True):
-        labels, before50, after50, before99, after99 = [], [], [], [], []
-        for client, name in [("bench", "nak bench"), ("python", "grpcio")]:
-            labels.append(name)
-            b, a = results[f"before/{client}/{load.key}"], results[f"after/{client}/{load.key}"]
-            before50.append(b["latency_us"]["p50"])
-            after50.append(a["latency_us"]["p50"])
-            before99.append(b["latency_us"]["p99"])
-            after99.append(a["latency_us"]["p99"])
-        x = range(len(labels))
-        ax.bar([i - 0.2 for i in x], before50, 0.4, label="before, p50", color="#c44e52")
-        ax.bar([i + 0.2 for i in x], after50, 0.4, label="after, p50", color="#4c72b0")
-        ax.scatter([i - 0.2 for i in x], before99, marker="_", s=300, color="#7a1f22", label="p99")
-        ax.scatter([i + 0.2 for i in x], after99, marker="_", s=300, color="#1f3a66")
+        clients = [("bench", "nak bench"), ("python", "grpcio")]
+        for i, server_kind in enumerate(SERVERS):
+            x = [c + (i - (len(SERVERS) - 1) / 2) * width for c in range(len(clients))]
+            runs = [results[f"{server_kind.key}/{client}/{load.key}"] for client, _ in clients]
+            fill, edge = colours[server_kind.key]
+            ax.bar(x, [r["latency_us"]["p50"] for r in runs], width, label=f"{server_kind.label}, p50", color=fill)
+            ax.scatter(x, [r["latency_us"]["p99"] for r in runs], marker="_", s=200, color=edge)
         ax.axhline(250, color="grey", linestyle=":", linewidth=1)
         ax.set_yscale("log")
-        ax.set_xticks(list(x), labels)
+        ax.set_xticks(range(len(clients)), [name for _, name in clients])
         ax.set_title(load.label, fontsize=10)
-    axes[0].set_ylabel("latency (µs, log scale; dotted: 250 µs)")
+    axes[0].set_ylabel("latency, µs (log scale)")
     axes[0].legend(fontsize=8, loc="upper left")
     fig.tight_layout()
     (args.out.parent / "latency").mkdir(exist_ok=True)
@@ -243,19 +262,22 @@ table, not with other runs.
 
 ![p50 and p99 before and after](latency/latency.png)
 
+Bars: p50; dashes: p99; dotted line: 250 µs.
+
 Latency is from each request's due time (open loop) or send time (closed loop) to its answer; server
 is the server's own account of each answer (`Timing.total_us`: after the change the whole handler,
 before the engine only, so the before column understates the server); client − server is what the
 network stack,
 the codecs and the client take. `nak bench` is the after build's in every row; the Python client
 (scripts/latency_client.py, {results["after/python/unary-1k"]["client"]}) shares no code with it and
-sends two graspers of ten nodes each.
+sends two graspers of ten nodes each. The third server of each group is the after build started with
+`--poll-idle-cpus`: while it runs, idle CPUs poll instead of halting (see the last section). Times in µs.
 
-| load | client | before p50 | before p99 | before server p50 | before client − server | after p50 | after p99 | after server p50 | after client − server |
-|---|---|---|---|---|---|---|---|---|---|
+| load | client | server | p50 | p99 | server p50 | client − server |
+|---|---|---|---|---|---|---|
 {table}
 
-## Where the time goes (after, `nak bench`, medians in µs)
+## Where the time goes (`nak bench`, medians in µs)
 
 The generator's delay from due time to handing the request to the gRPC client, the server's whole
 handler (of which waiting for a compute thread: histograms start at 1 µs, so 1 means none), and the
@@ -263,8 +285,8 @@ rest: the client's encoding and decoding, HTTP/2 and the loopback network stack 
 and the wake-ups of the idle threads on either side. Encoding a full answer takes 2.8 µs and decoding
 a request 0.5 µs (`cargo bench --bench codec`).
 
-| load | latency | generator | server | server: queue | outside both |
-|---|---|---|---|---|---|
+| load | server | latency | generator | server | server: queue | outside both |
+|---|---|---|---|---|---|---|
 {stages}
 
 ## The load generator's own delay
@@ -275,7 +297,7 @@ request to the runtime), **{new["latency_us"]["p50"]:.0f} µs** with the after o
 runtime's own thread). The after generator reports its delay from due time to hand-over to the gRPC
 client: p50 **{new["generator_us"]["p50"]:.0f} µs**, p99 **{new["generator_us"]["p99"]:.0f} µs**.
 
-## The floor: waking an idle CPU
+## Waking an idle CPU, and not letting CPUs halt
 
 One byte passed back and forth between two processes through pipes (Python, `wake_round_trip_us` in
 scripts/latency_report.py) takes **{wake["same_cpu"]:.1f} µs** a round trip when both are on one CPU and
@@ -287,6 +309,18 @@ server's on the request, the client's on the answer. With the after server and `
 CPU 0 (`taskset -c 0`), unary closed loop on one connection: p50 **{one_cpu["latency_us"]["p50"]:.0f} µs**,
 client − server **{gap(one_cpu):.0f} µs**, against **{gap(closed):.0f} µs** on two CPUs above; what is
 left is the work itself (HTTP/2, the 116 kB answer through loopback TCP, the codecs), done on one CPU.
+A system-wide profile of that load (`perf record -a -g`) puts most of it in the kernel copying each
+answer into the socket (`_copy_from_iter` under `tcp_sendmsg`), several times slower per byte than
+the client's copy out of it.
+
+`nak serve --poll-idle-cpus` removes the wake-ups instead of avoiding them: for as long as the server
+runs it holds a CPU latency QoS request of 0 µs (`/dev/cpu_dma_latency`, root only), under which the
+kernel's cpuidle governor keeps idle CPUs in their polling state. The request holds for the whole
+machine, so a client on the same machine gains too (`nak bench --poll-idle-cpus` makes the same request
+on a load generator's own machine). While that server ran, the cross-CPU round trip took
+**{results["wake_round_trip_us_polling"]:.1f} µs**, and unary closed loop on one connection had client −
+server **{gap(polled):.0f} µs** on two CPUs. The price: idle CPUs spin at full power instead of sleeping,
+so it is opt-in, for machines that serve latency-critical clients.
 """
     )
 
