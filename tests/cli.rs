@@ -287,7 +287,10 @@ fn poll_idle_cpus_holds_a_zero_latency_request_while_the_server_runs() {
     serve.args(["serve", "--poll-idle-cpus"]);
     let server = ServeProcess::start(serve);
     // Logged before the engine loads, so among the lines read while waiting for "listening".
-    let announced = server.log().iter().any(|l| l.contains("idle CPUs poll instead of halting"));
+    let announced = server
+        .log()
+        .iter()
+        .any(|l| l.contains("idle CPUs poll instead of halting"));
     assert!(announced, "{:#?}", server.log());
     assert_eq!(nak::cpu_idle::current_bound_us().unwrap(), 0);
     let (exit, rest) = server.stop();
