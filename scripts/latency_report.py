@@ -1,8 +1,8 @@
 """Serving latency before and after a change, measured in one run (scripts/latency-report runs this).
 
-For each server binary (`--before`, `--after`) a release `nak serve` on the embedded phantom is loaded
-in turn by `nak bench` (the after build's) and by the independent Python grpcio client
-(scripts/latency_client.py): unary at 1,000 requests/s open loop, closed loop on one connection, and
+For each server (the `--before` binary, the `--after` one, and the `--after` one with
+`--poll-idle-cpus`) a release `nak serve` on the embedded phantom is loaded in turn by `nak bench`
+(the after build's) and by the independent Python grpcio client (scripts/latency_client.py): unary at 1,000 requests/s open loop, closed loop on one connection, and
 a 1 kHz stream. The before build's own `nak bench` is also run against the after server, to show
 what the load generator itself adds. Results go to docs/latency.md and docs/latency/latency.png.
 """
@@ -130,12 +130,13 @@ class Server:
     label: str
     build: str
     flags: list[str]
+    colours: tuple[str, str]  # the figure's bars (p50) and dashes (p99)
 
 
 SERVERS = [
-    Server("before", "before", "before", []),
-    Server("after", "after", "after", []),
-    Server("polling", "after, idle CPUs polling", "after", ["--poll-idle-cpus"]),
+    Server("before", "before", "before", [], ("#c44e52", "#7a1f22")),
+    Server("after", "after", "after", [], ("#4c72b0", "#1f3a66")),
+    Server("polling", "after, idle CPUs polling", "after", ["--poll-idle-cpus"], ("#55a868", "#2d5e3a")),
 ]
 
 
@@ -230,14 +231,13 @@ def render(args: argparse.Namespace) -> None:
         for label, client, server, cells in rows
     )
     fig, axes = plt.subplots(1, len(LOADS), figsize=(11, 3.6), sharey=True)
-    colours = {"before": ("#c44e52", "#7a1f22"), "after": ("#4c72b0", "#1f3a66"), "polling": ("#55a868", "#2d5e3a")}
     width = 0.8 / len(SERVERS)
     for ax, load in zip(axes, LOADS, strict=True):
         clients = [("bench", "nak bench"), ("python", "grpcio")]
         for i, server_kind in enumerate(SERVERS):
             x = [c + (i - (len(SERVERS) - 1) / 2) * width for c in range(len(clients))]
             runs = [results[f"{server_kind.key}/{client}/{load.key}"] for client, _ in clients]
-            fill, edge = colours[server_kind.key]
+            fill, edge = server_kind.colours
             ax.bar(x, [r["latency_us"]["p50"] for r in runs], width, label=f"{server_kind.label}, p50", color=fill)
             ax.scatter(x, [r["latency_us"]["p99"] for r in runs], marker="_", s=200, color=edge)
         ax.axhline(250, color="grey", linestyle=":", linewidth=1)

@@ -3,8 +3,8 @@
 //!
 //! Why not faer: at the sizes a request brings (3K = 30…150) its general, recursive kernels spend
 //! most of their time choosing paths: the K = 20 solve (60 unknowns, about 144,000 FMAs) took
-//! 22.7 µs with faer 0.24 and takes 12 µs with these (`cargo bench --bench prior` at commit 22d1888
-//! and after, 2-vCPU Xeon with AVX-512). Here the O(n³) loops hold an 8-row × 4-column block of the
+//! 22.7 µs with faer 0.24 and 12 µs with these (`cargo bench --bench prior` at commit 22d1888
+//! and after, 2-vCPU Xeon with AVX-512; the README follows it since). Here the O(n³) loops hold an 8-row × 4-column block of the
 //! output in registers while the columns it depends on stream past: each loaded chunk feeds four FMAs, eight
 //! independent sums hide the FMA latency, and no horizontal sums or store-to-load chains sit in
 //! the inner loop. The functions are compiled for AVX-512 and AVX2 and picked at run time, like the
@@ -213,7 +213,7 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
         }
     }
     let tail: f64 = a_tail.iter().zip(b_tail).map(|(x, y)| x * y).sum();
-    // A tree, not a chain: three dependent additions instead of seven.
+    // A tree, not a chain: two dependent additions instead of three.
     let [s0, s1, s2, s3]: [f64; LANES] = std::array::from_fn(|lane| even[lane] + odd[lane]);
     ((s0 + s2) + (s1 + s3)) + tail
 }
