@@ -6,7 +6,9 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
+use tonic::codegen::http;
 use tonic::metadata::MetadataMap;
+use tower::util::MapRequestLayer;
 
 /// Requests admitted per compute thread by default. Each waits behind at most this many others per
 /// core: the Kelvinlet prior on the phantom costs ~0.2 ms, so an admitted request waits ~1 ms at
@@ -85,6 +87,28 @@ impl Admission {
     }
 }
 
+/// When a call's headers arrived: stamped by [`arrival_layer`] at the point where tonic's own deadline
+/// timer starts. The handler runs only once the message has arrived and been decoded, later by as much
+/// as a busy machine delays it, so a deadline counted from there could overshoot the caller's.
+#[derive(Clone, Copy, Debug)]
+pub struct Arrival(Instant);
+
+/// Stamps each call with its [`Arrival`].
+pub fn arrival_layer<B>() -> MapRequestLayer<fn(http::Request<B>) -> http::Request<B>> {
+    MapRequestLayer::new(|mut request: http::Request<B>| {
+        request.extensions_mut().insert(Arrival(Instant::now()));
+        request
+    })
+}
+
+/// When `request` arrived: its [`Arrival`] stamp, or now where no layer stamped it.
+pub fn arrival<T>(request: &tonic::Request<T>) -> Instant {
+    request
+        .extensions()
+        .get::<Arrival>()
+        .map_or_else(Instant::now, |arrival| arrival.0)
+}
+
 /// When to give up on a call with a `grpc-timeout` header, measured from `received`.
 ///
 /// The client times the call too, from before it was sent, and so does tonic's server layer, which
@@ -151,5 +175,34 @@ mod tests {
         assert_eq!(deadline(&metadata, now), Some(now + Duration::from_millis(95)));
         metadata.insert("grpc-timeout", "2m".parse().unwrap());
         assert_eq!(deadline(&metadata, now), Some(now + Duration::from_micros(1500)));
+    }
+
+    #[test]
+    fn a_call_arrives_when_the_layer_stamps_it_not_when_its_handler_runs() {
+        use tower::{Layer, Service, ServiceExt};
+        let stamped = tokio::runtime::Builder::new_current_thread()
+            .build()
+            .unwrap()
+            .block_on(async {
+                let echo = tower::service_fn(|request: http::Request<()>| async move {
+                    Ok::<_, std::convert::Infallible>(request)
+                });
+                let mut service = arrival_layer().layer(echo);
+                let before = Instant::now();
+                let request = service
+                    .ready()
+                    .await
+                    .unwrap()
+                    .call(http::Request::new(()))
+                    .await
+                    .unwrap();
+                (before, tonic::Request::from_http(request))
+            });
+        let (before, request) = stamped;
+        std::thread::sleep(Duration::from_millis(20));
+        let arrived = arrival(&request);
+        assert!(arrived >= before && arrived.elapsed() >= Duration::from_millis(20));
+        // Unstamped (a service called without the layer): now.
+        assert!(arrival(&tonic::Request::new(())).elapsed() < Duration::from_millis(20));
     }
 }

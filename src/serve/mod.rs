@@ -308,6 +308,7 @@ pub async fn run(
     }
     builder
         .layer(status_codes::layer())
+        .layer(admission::arrival_layer())
         .add_service(health_service)
         .add_service(reflection)
         .add_service(deformation)

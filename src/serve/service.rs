@@ -220,7 +220,7 @@ impl Deformation for DeformationService {
     }
 
     async fn predict(&self, request: Request<pb::PredictRequest>) -> Result<Response<pb::PredictResponse>, Status> {
-        let deadline = admission::deadline(request.metadata(), Instant::now());
+        let deadline = admission::deadline(request.metadata(), admission::arrival(&request));
         self.predict_one(request.into_inner(), deadline)
             .await
             .map(Response::new)
@@ -233,7 +233,7 @@ impl Deformation for DeformationService {
         request: Request<Streaming<pb::PredictRequest>>,
     ) -> Result<Response<Self::PredictStreamStream>, Status> {
         // A stream's deadline is its call's: every message must be answered before it.
-        let deadline = admission::deadline(request.metadata(), Instant::now());
+        let deadline = admission::deadline(request.metadata(), admission::arrival(&request));
         let mut incoming = request.into_inner();
         let service = self.clone();
         // Requests are answered one at a time as they arrive, so answers keep their order. A refused
