@@ -13,6 +13,8 @@ import argparse
 import json
 import os
 import platform
+import socket
+import statistics
 import subprocess
 import sys
 import time
@@ -124,6 +126,67 @@ def wake_round_trip_us(cpu_a: int, cpu_b: int, rounds: int = 20_000) -> float:
     return elapsed / rounds / 1e3
 
 
+# A full answer on the phantom: 9,701 nodes × 3 × f32, and a few bytes of its other fields.
+ANSWER_BYTES = 9_701 * 12 + 64
+REQUEST_BYTES = 200
+FLOOR_ROUNDS = 3_000
+
+
+def loopback_floor_us(
+    cpu_server: int, cpu_client: int, answer_bytes: int = ANSWER_BYTES, rounds: int = FLOOR_ROUNDS
+) -> float:
+    """Median time (µs) for a request of REQUEST_BYTES to cross loopback TCP and `answer_bytes` to come
+    back, between two Python processes pinned to `cpu_server` and `cpu_client`, one request every
+    millisecond as at 1,000 requests/s: the same bytes as a unary call, without HTTP/2, gRPC, the codecs
+    or any computation. Python's own few µs per call on each side make it an upper bound of the
+    transport's share of client − server."""
+    ready_read, ready_write = os.pipe()
+    pid = os.fork()
+    if pid == 0:
+        os.sched_setaffinity(0, {cpu_server})
+        listener = socket.create_server(("127.0.0.1", 0))
+        os.write(ready_write, listener.getsockname()[1].to_bytes(2, "little"))
+        connection, _ = listener.accept()
+        connection.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        answer, request = bytes(answer_bytes), bytearray(REQUEST_BYTES)
+        while connection.recv_into(request, REQUEST_BYTES, socket.MSG_WAITALL) == REQUEST_BYTES:
+            connection.sendall(answer)
+        os._exit(0)
+    allowed = os.sched_getaffinity(0)
+    os.sched_setaffinity(0, {cpu_client})
+    times = []
+    try:
+        port = int.from_bytes(os.read(ready_read, 2), "little")
+        with socket.create_connection(("127.0.0.1", port)) as client:
+            client.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            question, reply = bytes(REQUEST_BYTES), bytearray(answer_bytes)
+            for i in range(rounds + 300):
+                time.sleep(0.001)
+                start = time.perf_counter_ns()
+                client.sendall(question)
+                client.recv_into(reply, answer_bytes, socket.MSG_WAITALL)
+                if i >= 300:
+                    times.append(time.perf_counter_ns() - start)
+    finally:
+        os.sched_setaffinity(0, allowed)
+        os.waitpid(pid, 0)
+        os.close(ready_read)
+        os.close(ready_write)
+    return statistics.median(times) / 1e3
+
+
+def transport_floors(across_cpus_only: bool) -> dict[str, float]:
+    """`loopback_floor_us` for a full answer and a 1 kB one, across the two CPUs and on one."""
+    floors = {
+        "full_across_cpus": loopback_floor_us(0, 1),
+        "small_across_cpus": loopback_floor_us(0, 1, answer_bytes=1_000),
+    }
+    if not across_cpus_only:
+        floors["full_same_cpu"] = loopback_floor_us(0, 0)
+        floors["small_same_cpu"] = loopback_floor_us(0, 0, answer_bytes=1_000)
+    return floors
+
+
 @dataclass(frozen=True)
 class Server:
     key: str
@@ -140,10 +203,23 @@ SERVERS = [
 ]
 
 
+def cpu_times() -> list[int]:
+    """The machine's CPU time so far, by kind, in clock ticks: the first line of /proc/stat."""
+    return [int(field) for field in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+
+
+def steal_percent(start: list[int], end: list[int]) -> float:
+    """The share of the CPUs' time between two `cpu_times` that the hypervisor gave to other guests
+    (steal, the eighth field): how much a shared host disturbed a run."""
+    spent = [b - a for a, b in zip(start, end, strict=True)]
+    return 100.0 * spent[7] / sum(spent)
+
+
 def measure(args: argparse.Namespace) -> None:
     data: Path = args.data
     data.mkdir(parents=True, exist_ok=True)
     results: dict[str, Any] = {}
+    started = cpu_times()
     for server_kind in SERVERS:
         side = server_kind.key
         binary = args.before if server_kind.build == "before" else args.after
@@ -166,6 +242,7 @@ def measure(args: argparse.Namespace) -> None:
             if side == "polling":
                 # The server's request holds for the whole machine while it runs.
                 results["wake_round_trip_us_polling"] = wake_round_trip_us(0, 1)
+                results["floor_us_polling"] = transport_floors(across_cpus_only=True)
         finally:
             server.terminate()
             server.wait(timeout=30)
@@ -182,6 +259,8 @@ def measure(args: argparse.Namespace) -> None:
         server.terminate()
         server.wait(timeout=30)
     results["wake_round_trip_us"] = {"same_cpu": wake_round_trip_us(0, 0), "across_cpus": wake_round_trip_us(0, 1)}
+    results["floor_us"] = transport_floors(across_cpus_only=False)
+    results["steal_percent"] = steal_percent(started, cpu_times())
     (data / "results.json").write_text(json.dumps(results, indent=2) + "\n")
 
 
@@ -222,6 +301,9 @@ def render(args: argparse.Namespace) -> None:
     wake = results["wake_round_trip_us"]
     closed, one_cpu = results["after/bench/unary-closed"], results["after/bench-one-cpu/unary-closed"]
     polled = results["polling/bench/unary-closed"]
+    floor, floor_polling = results["floor_us"], results["floor_us_polling"]
+    open_loop, open_loop_polling = results["after/bench/unary-1k"], results["polling/bench/unary-1k"]
+    stream, stream_polling = results["after/bench/stream-1k"], results["polling/bench/stream-1k"]
 
     def gap(r: dict[str, Any]) -> float:
         return float(r["latency_us"]["p50"] - r["server_us"]["p50"])
@@ -258,7 +340,8 @@ Generated by `scripts/latency-report --before BIN` (do not edit by hand): the be
 measured in one run, one after the other, on {machine}; release builds; the embedded phantom (9,701
 nodes), the Kelvinlet prior, two graspers; load generator and server on the same two cores.
 `before`: {args.before_label}. `after`: this checkout. The machine is shared: compare within this
-table, not with other runs.
+table, not with other runs. During this run the hypervisor gave {results["steal_percent"]:.1f} % of
+the CPUs' time to other guests (steal time, /proc/stat).
 
 ![p50 and p99 before and after](latency/latency.png)
 
@@ -321,6 +404,27 @@ on a load generator's own machine). While that server ran, the cross-CPU round t
 **{results["wake_round_trip_us_polling"]:.1f} µs**, and unary closed loop on one connection had client −
 server **{gap(polled):.0f} µs** on two CPUs. The price: idle CPUs spin at full power instead of sleeping,
 so it is opt-in, for machines that serve latency-critical clients.
+
+## The transport's floor: the same bytes without gRPC
+
+How much of client − server is HTTP/2, gRPC and the codecs, and how much the machine's loopback TCP
+and its wake-ups would take anyway? Two Python processes exchange the same bytes over loopback TCP, a
+{REQUEST_BYTES}-byte request and the answer, one exchange every millisecond as at 1,000 requests/s, and
+nothing else (`loopback_floor_us` in scripts/latency_report.py; medians of {FLOOR_ROUNDS:,} exchanges, in µs):
+
+| answer | one CPU | two CPUs | two CPUs, idle CPUs polling |
+|---|---|---|---|
+| a full field, {ANSWER_BYTES:,} bytes | {floor["full_same_cpu"]:.0f} | {floor["full_across_cpus"]:.0f} | \
+{floor_polling["full_across_cpus"]:.0f} |
+| 1,000 bytes | {floor["small_same_cpu"]:.0f} | {floor["small_across_cpus"]:.0f} | {floor_polling["small_across_cpus"]:.0f} |
+
+Python adds a few µs a call on each side, so these are upper bounds of the floor. Against them, nak's
+client − server at 1,000/s: unary **{gap(open_loop):.0f} µs** (floor
+{floor["full_across_cpus"]:.0f}), **{gap(open_loop_polling):.0f} µs** with idle CPUs polling (floor
+{floor_polling["full_across_cpus"]:.0f}); stream **{gap(stream):.0f} µs** and
+**{gap(stream_polling):.0f} µs**. What HTTP/2, gRPC, the codecs and the hand-offs inside each process add
+is at least the difference. The 1,000-byte rows show how little of the floor is the answer's size:
+most of it is the exchange itself, its system calls, softirqs and wake-ups, on this virtual machine.
 """
     )
 
