@@ -79,6 +79,10 @@ async fn closed_loop_runs_for_the_duration_in_both_modes() {
             assert!(json["latency_us"][key].is_number(), "{key}");
         }
         assert!(json["throughput_rps"].as_f64().unwrap() > 0.0);
+        if cfg!(target_os = "linux") {
+            let steal = json["steal_percent"].as_f64().expect("steal time, from /proc/stat");
+            assert!((0.0..=100.0).contains(&steal), "{steal}");
+        }
     }
     server.stop().await;
 }

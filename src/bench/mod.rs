@@ -11,6 +11,7 @@
 mod pacer;
 mod report;
 mod requests;
+mod steal;
 
 use std::collections::{BTreeMap, VecDeque};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -22,6 +23,7 @@ use tokio::time::Instant;
 
 pub use report::{Interval, Percentiles, Report};
 pub use requests::{RequestsError, draw, sampler_for};
+use steal::CpuTimes;
 
 use crate::client::{Client, ClientConfig, ClientError, connect};
 use crate::proto::v1::PredictRequest;
@@ -314,6 +316,11 @@ pub async fn run(config: &BenchConfig, progress: impl Fn(Progress)) -> Result<Re
     if let Some(rate) = config.rate {
         tokio::spawn(pace(pacer::Pacer::new()?, rate, start, end, pacer_queues));
     }
+    // Read when measuring starts, not now: the warm-up is not part of the report.
+    let cpu_times_from = tokio::spawn(async move {
+        tokio::time::sleep_until(measure_from).await;
+        CpuTimes::now()
+    });
     let total = end - start;
     let mut ticker = tokio::time::interval(Duration::from_millis(250));
     loop {
@@ -331,6 +338,10 @@ pub async fn run(config: &BenchConfig, progress: impl Fn(Progress)) -> Result<Re
     let queue = Tally::snapshot(&tally.queue)?;
     let generator = Tally::snapshot(&tally.generator)?;
     let requests = latency.len();
+    let steal_percent = match (cpu_times_from.await.ok().flatten(), CpuTimes::now()) {
+        (Some(from), Some(to)) => from.steal_percent_until(&to),
+        _ => None,
+    };
     Ok(Report {
         target: config.connection.targets.clone(),
         model: config.model.clone(),
@@ -353,6 +364,7 @@ pub async fn run(config: &BenchConfig, progress: impl Fn(Progress)) -> Result<Re
         generator_us: Percentiles::of(&generator),
         errors: tally.errors.lock().map(|e| e.clone()).unwrap_or_default(),
         intervals: tally.intervals(),
+        steal_percent,
     })
 }
 

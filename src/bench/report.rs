@@ -73,6 +73,9 @@ pub struct Report {
     pub errors: BTreeMap<String, u64>,
     /// Per `--interval`, in order; empty without it.
     pub intervals: Vec<Interval>,
+    /// The share of this machine's CPU time that its hypervisor gave to other guests while measuring
+    /// (`/proc/stat`); `None` where that is not known.
+    pub steal_percent: Option<f64>,
 }
 
 impl Report {
@@ -108,6 +111,9 @@ impl Report {
                 )
             })
             .collect();
+        let steal = self.steal_percent.map_or(String::new(), |p| {
+            format!("\nhost        {p:.1} % of this machine's CPU time went to other guests (steal)")
+        });
         format!(
             "target      {}\nmodel       {} ({}, {} grasper(s), concurrency {}, offered {})\n\
              requests    {} in {:.1} s = {:.0}/s\n\
@@ -115,7 +121,7 @@ impl Report {
              server µs   p50 {:.0}  p99 {:.0}  (waiting for a compute thread p50 {:.0})\n\
              generator   p50 {:.0}  p99 {:.0} µs after the due time\n\
              outside     p50 {:.0} µs: latency − server − generator (client and transport)\n\
-             errors      {}",
+             errors      {}{steal}",
             self.target,
             self.model,
             self.mode,
