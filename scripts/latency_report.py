@@ -391,10 +391,8 @@ hypervisor). A unary call whose client and server wait on different CPUs pays tw
 server's on the request, the client's on the answer. With the after server and `nak bench` both pinned to
 CPU 0 (`taskset -c 0`), unary closed loop on one connection: p50 **{one_cpu["latency_us"]["p50"]:.0f} µs**,
 client − server **{gap(one_cpu):.0f} µs**, against **{gap(closed):.0f} µs** on two CPUs above; what is
-left is the work itself (HTTP/2, the 116 kB answer through loopback TCP, the codecs), done on one CPU.
-A system-wide profile of that load (`perf record -a -g`) puts most of it in the kernel copying each
-answer into the socket (`_copy_from_iter` under `tcp_sendmsg`), several times slower per byte than
-the client's copy out of it.
+left is the work itself (HTTP/2, the 116 kB answer through loopback TCP, the codecs), done on one CPU;
+the last section measures how much of it the loopback exchange alone takes.
 
 `nak serve --poll-idle-cpus` removes the wake-ups instead of avoiding them: for as long as the server
 runs it holds a CPU latency QoS request of 0 µs (`/dev/cpu_dma_latency`, root only), under which the
