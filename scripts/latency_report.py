@@ -79,6 +79,7 @@ def nak_bench(binary: Path, load: Load, out: Path, seconds: int, prefix: list[st
         "server_us": report["server_us"],
         "server_queue_us": report.get("server_queue_us"),
         "generator_us": report.get("generator_us"),
+        "client_cpu_us": report.get("client_cpu_us"),
     }
 
 
@@ -283,7 +284,7 @@ def render(args: argparse.Namespace) -> None:
                 cells = [lat["p50"], lat["p99"], srv["p50"], lat["p50"] - srv["p50"]]
                 rows.append((load.label, name, server_kind.label, cells))
     stages = "\n".join(
-        "| {} | {} | {:.0f} | {:.0f} | {:.0f} | {:.0f} | {:.0f} |".format(
+        "| {} | {} | {:.0f} | {:.0f} | {:.0f} | {:.0f} | {:.0f} | {:.0f} |".format(
             load.label,
             server_kind.label,
             r["latency_us"]["p50"],
@@ -291,6 +292,7 @@ def render(args: argparse.Namespace) -> None:
             r["server_us"]["p50"],
             r["server_queue_us"]["p50"],
             r["latency_us"]["p50"] - r["generator_us"]["p50"] - r["server_us"]["p50"],
+            r["client_cpu_us"],
         )
         for load in LOADS
         for server_kind in SERVERS[1:]
@@ -366,11 +368,18 @@ The generator's delay from due time to handing the request to the gRPC client, t
 handler (of which waiting for a compute thread: histograms start at 1 µs, so 1 means none), and the
 rest: the client's encoding and decoding, HTTP/2 and the loopback network stack in both directions,
 and the wake-ups of the idle threads on either side. Encoding a full answer takes 2.8 µs and decoding
-a request 0.5 µs (`cargo bench --bench codec`).
+a request 0.5 µs (`cargo bench --bench codec`). The last column is not a median but `nak bench`'s own
+CPU time per request (`client_cpu_us`: all its threads, user and system, the kernel's work for its
+socket included): what the client side of each call costs, on the same two cores as the server.
 
-| load | server | latency | generator | server | server: queue | outside both |
-|---|---|---|---|---|---|---|
+| load | server | latency | generator | server | server: queue | outside both | client CPU per request |
+|---|---|---|---|---|---|---|---|
 {stages}
+
+At 1,000 requests/s `nak bench` spent **{open_loop["client_cpu_us"]:.0f} µs** of CPU per unary call
+against **{stream["client_cpu_us"]:.0f} µs** per message on a stream: each unary call opens and closes
+an HTTP/2 stream of its own (headers both ways, then trailers), in many small steps through tonic,
+hyper and h2; on two shared cores that CPU is latency too.
 
 ## The load generator's own delay
 

@@ -82,6 +82,10 @@ async fn closed_loop_runs_for_the_duration_in_both_modes() {
         if cfg!(target_os = "linux") {
             let steal = json["steal_percent"].as_f64().expect("steal time, from /proc/stat");
             assert!((0.0..=100.0).contains(&steal), "{steal}");
+            let cpu = json["client_cpu_us"]
+                .as_f64()
+                .expect("this process's CPU time per request");
+            assert!(cpu > 0.0, "{cpu}");
         }
     }
     server.stop().await;

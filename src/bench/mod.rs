@@ -8,10 +8,10 @@
 //! are timed apart: under overload, how fast a refusal comes matters as much as an answer. Requests are drawn from the paper's
 //! distribution p over the mesh the server reports, reproducibly from the seed.
 
+mod host;
 mod pacer;
 mod report;
 mod requests;
-mod steal;
 
 use std::collections::{BTreeMap, VecDeque};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -21,9 +21,9 @@ use std::time::Duration;
 use hdrhistogram::Histogram;
 use tokio::time::Instant;
 
+use host::Usage;
 pub use report::{Interval, Percentiles, Report};
 pub use requests::{RequestsError, draw, sampler_for};
-use steal::CpuTimes;
 
 use crate::client::{Client, ClientConfig, ClientError, connect};
 use crate::proto::v1::PredictRequest;
@@ -317,9 +317,9 @@ pub async fn run(config: &BenchConfig, progress: impl Fn(Progress)) -> Result<Re
         tokio::spawn(pace(pacer::Pacer::new()?, rate, start, end, pacer_queues));
     }
     // Read when measuring starts, not now: the warm-up is not part of the report.
-    let cpu_times_from = tokio::spawn(async move {
+    let usage_from = tokio::spawn(async move {
         tokio::time::sleep_until(measure_from).await;
-        CpuTimes::now()
+        Usage::now()
     });
     let total = end - start;
     let mut ticker = tokio::time::interval(Duration::from_millis(250));
@@ -338,10 +338,12 @@ pub async fn run(config: &BenchConfig, progress: impl Fn(Progress)) -> Result<Re
     let queue = Tally::snapshot(&tally.queue)?;
     let generator = Tally::snapshot(&tally.generator)?;
     let requests = latency.len();
-    let steal_percent = match (cpu_times_from.await.ok().flatten(), CpuTimes::now()) {
-        (Some(from), Some(to)) => from.steal_percent_until(&to),
-        _ => None,
-    };
+    let (usage_from, usage_to) = (usage_from.await.ok(), Usage::now());
+    let steal_percent = usage_from.and_then(|from| from.steal_percent_until(&usage_to));
+    let client_cpu_us = usage_from
+        .and_then(|from| from.process_time_until(&usage_to))
+        .filter(|_| requests > 0)
+        .map(|spent| spent.as_secs_f64() * 1e6 / requests as f64);
     Ok(Report {
         target: config.connection.targets.clone(),
         model: config.model.clone(),
@@ -365,6 +367,7 @@ pub async fn run(config: &BenchConfig, progress: impl Fn(Progress)) -> Result<Re
         errors: tally.errors.lock().map(|e| e.clone()).unwrap_or_default(),
         intervals: tally.intervals(),
         steal_percent,
+        client_cpu_us,
     })
 }
 

@@ -76,6 +76,9 @@ pub struct Report {
     /// The share of this machine's CPU time that its hypervisor gave to other guests while measuring
     /// (`/proc/stat`); `None` where that is not known.
     pub steal_percent: Option<f64>,
+    /// This process's CPU time (all threads, user and system) per request while measuring: what the
+    /// load generator and its gRPC client cost; `None` where that is not known.
+    pub client_cpu_us: Option<f64>,
 }
 
 impl Report {
@@ -111,6 +114,9 @@ impl Report {
                 )
             })
             .collect();
+        let client_cpu = self.client_cpu_us.map_or(String::new(), |us| {
+            format!("\nclient CPU  {us:.0} µs per request (this process, user and system)")
+        });
         let steal = self.steal_percent.map_or(String::new(), |p| {
             format!("\nhost        {p:.1} % of this machine's CPU time went to other guests (steal)")
         });
@@ -120,7 +126,7 @@ impl Report {
              latency µs  p50 {:.0}  p90 {:.0}  p99 {:.0}  p99.9 {:.0}  max {:.0}  mean {:.0}{split}{intervals}\n\
              server µs   p50 {:.0}  p99 {:.0}  (waiting for a compute thread p50 {:.0})\n\
              generator   p50 {:.0}  p99 {:.0} µs after the due time\n\
-             outside     p50 {:.0} µs: latency − server − generator (client and transport)\n\
+             outside     p50 {:.0} µs: latency − server − generator (client and transport){client_cpu}\n\
              errors      {}{steal}",
             self.target,
             self.model,
