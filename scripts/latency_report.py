@@ -379,7 +379,10 @@ socket included): what the client side of each call costs, on the same two cores
 At 1,000 requests/s `nak bench` spent **{open_loop["client_cpu_us"]:.0f} µs** of CPU per unary call
 against **{stream["client_cpu_us"]:.0f} µs** per message on a stream: each unary call opens and closes
 an HTTP/2 stream of its own (headers both ways, then trailers), in many small steps through tonic,
-hyper and h2; on two shared cores that CPU is latency too.
+hyper and h2; on two shared cores that CPU is latency too. Both open-loop figures include the
+generator's spin of up to 100 µs before each due time (its timer fires early because waking an idle
+CPU is slow, see below); in a closed loop, without it, a unary call cost the client
+**{closed["client_cpu_us"]:.0f} µs**.
 
 ## The load generator's own delay
 
@@ -430,8 +433,11 @@ client − server at 1,000/s: unary **{gap(open_loop):.0f} µs** (floor
 {floor["full_across_cpus"]:.0f}), **{gap(open_loop_polling):.0f} µs** with idle CPUs polling (floor
 {floor_polling["full_across_cpus"]:.0f}); stream **{gap(stream):.0f} µs** and
 **{gap(stream_polling):.0f} µs**. What HTTP/2, gRPC, the codecs and the hand-offs inside each process add
-is at least the difference. The 1,000-byte rows show how little of the floor is the answer's size:
-most of it is the exchange itself, its system calls, softirqs and wake-ups, on this virtual machine.
+is at least the difference. The 1,000-byte row separates the exchange from the answer's size: on
+two CPUs a 1 kB answer took {floor["small_across_cpus"]:.0f} µs against {floor["full_across_cpus"]:.0f} µs
+for a full field, and with idle CPUs polling {floor_polling["small_across_cpus"]:.0f} µs against
+{floor_polling["full_across_cpus"]:.0f} µs: where idle CPUs halt, the wake-ups are most of the floor; where
+they poll, moving the answer's bytes through loopback TCP is.
 """
     )
 
