@@ -17,6 +17,7 @@ import socket
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -134,57 +135,73 @@ FLOOR_ROUNDS = 3_000
 
 
 def loopback_floor_us(
-    cpu_server: int, cpu_client: int, answer_bytes: int = ANSWER_BYTES, rounds: int = FLOOR_ROUNDS
+    cpu_server: int,
+    cpu_client: int,
+    answer_bytes: int = ANSWER_BYTES,
+    unix_socket: bool = False,
+    rounds: int = FLOOR_ROUNDS,
 ) -> float:
-    """Median time (µs) for a request of REQUEST_BYTES to cross loopback TCP and `answer_bytes` to come
-    back, between two Python processes pinned to `cpu_server` and `cpu_client`, one request every
-    millisecond as at 1,000 requests/s: the same bytes as a unary call, without HTTP/2, gRPC, the codecs
-    or any computation. Python's own few µs per call on each side make it an upper bound of the
-    transport's share of client − server."""
-    ready_read, ready_write = os.pipe()
-    pid = os.fork()
-    if pid == 0:
-        os.sched_setaffinity(0, {cpu_server})
-        listener = socket.create_server(("127.0.0.1", 0))
-        os.write(ready_write, listener.getsockname()[1].to_bytes(2, "little"))
-        connection, _ = listener.accept()
-        connection.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        answer, request = bytes(answer_bytes), bytearray(REQUEST_BYTES)
-        while connection.recv_into(request, REQUEST_BYTES, socket.MSG_WAITALL) == REQUEST_BYTES:
-            connection.sendall(answer)
-        os._exit(0)
-    allowed = os.sched_getaffinity(0)
-    os.sched_setaffinity(0, {cpu_client})
-    times = []
-    try:
-        port = int.from_bytes(os.read(ready_read, 2), "little")
-        with socket.create_connection(("127.0.0.1", port)) as client:
-            client.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            question, reply = bytes(REQUEST_BYTES), bytearray(answer_bytes)
-            for i in range(rounds + 300):
-                time.sleep(0.001)
-                start = time.perf_counter_ns()
-                client.sendall(question)
-                client.recv_into(reply, answer_bytes, socket.MSG_WAITALL)
-                if i >= 300:
-                    times.append(time.perf_counter_ns() - start)
-    finally:
-        os.sched_setaffinity(0, allowed)
-        os.waitpid(pid, 0)
-        os.close(ready_read)
-        os.close(ready_write)
+    """Median time (µs) for a request of REQUEST_BYTES to cross loopback TCP (or a Unix socket) and
+    `answer_bytes` to come back, between two Python processes pinned to `cpu_server` and `cpu_client`,
+    one request every millisecond as at 1,000 requests/s: the same bytes as a unary call, without
+    HTTP/2, gRPC, the codecs or any computation. Python's own few µs per call on each side make it an
+    upper bound of the transport's share of client − server."""
+    with tempfile.TemporaryDirectory() as scratch:
+        if unix_socket:
+            listener = socket.socket(socket.AF_UNIX)
+            listener.bind(str(Path(scratch) / "floor.sock"))
+            listener.listen(1)
+        else:
+            listener = socket.create_server(("127.0.0.1", 0))
+        address, family = listener.getsockname(), listener.family
+
+        def no_delay(connection: socket.socket) -> None:
+            if not unix_socket:
+                connection.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
+        pid = os.fork()
+        if pid == 0:
+            os.sched_setaffinity(0, {cpu_server})
+            connection, _ = listener.accept()
+            no_delay(connection)
+            answer, request = bytes(answer_bytes), bytearray(REQUEST_BYTES)
+            while connection.recv_into(request, REQUEST_BYTES, socket.MSG_WAITALL) == REQUEST_BYTES:
+                connection.sendall(answer)
+            os._exit(0)
+        listener.close()
+        allowed = os.sched_getaffinity(0)
+        os.sched_setaffinity(0, {cpu_client})
+        times = []
+        try:
+            with socket.socket(family) as client:
+                client.connect(address)
+                no_delay(client)
+                question, reply = bytes(REQUEST_BYTES), bytearray(answer_bytes)
+                for i in range(rounds + 300):
+                    time.sleep(0.001)
+                    start = time.perf_counter_ns()
+                    client.sendall(question)
+                    client.recv_into(reply, answer_bytes, socket.MSG_WAITALL)
+                    if i >= 300:
+                        times.append(time.perf_counter_ns() - start)
+        finally:
+            os.sched_setaffinity(0, allowed)
+            os.waitpid(pid, 0)
     return statistics.median(times) / 1e3
 
 
 def transport_floors(across_cpus_only: bool) -> dict[str, float]:
-    """`loopback_floor_us` for a full answer and a 1 kB one, across the two CPUs and on one."""
+    """`loopback_floor_us` for a full answer and a 1 kB one over TCP and a full one over a Unix socket,
+    across the two CPUs and, unless `across_cpus_only`, on one."""
     floors = {
         "full_across_cpus": loopback_floor_us(0, 1),
         "small_across_cpus": loopback_floor_us(0, 1, answer_bytes=1_000),
+        "full_unix_across_cpus": loopback_floor_us(0, 1, unix_socket=True),
     }
     if not across_cpus_only:
         floors["full_same_cpu"] = loopback_floor_us(0, 0)
         floors["small_same_cpu"] = loopback_floor_us(0, 0, answer_bytes=1_000)
+        floors["full_unix_same_cpu"] = loopback_floor_us(0, 0, unix_socket=True)
     return floors
 
 
@@ -420,13 +437,17 @@ so it is opt-in, for machines that serve latency-critical clients.
 How much of client − server is HTTP/2, gRPC and the codecs, and how much the machine's loopback TCP
 and its wake-ups would take anyway? Two Python processes exchange the same bytes over loopback TCP, a
 {REQUEST_BYTES}-byte request and the answer, one exchange every millisecond as at 1,000 requests/s, and
-nothing else (`loopback_floor_us` in scripts/latency_report.py; medians of {FLOOR_ROUNDS:,} exchanges, in µs):
+nothing else (`loopback_floor_us` in scripts/latency_report.py; medians of {FLOOR_ROUNDS:,} exchanges, in µs).
+The last row sends the full field over a Unix-domain socket instead, as a client on the server's
+machine could (gRPC's `unix:` targets; nak serves TCP only):
 
 | answer | one CPU | two CPUs | two CPUs, idle CPUs polling |
 |---|---|---|---|
 | a full field, {ANSWER_BYTES:,} bytes | {floor["full_same_cpu"]:.0f} | {floor["full_across_cpus"]:.0f} | \
 {floor_polling["full_across_cpus"]:.0f} |
 | 1,000 bytes | {floor["small_same_cpu"]:.0f} | {floor["small_across_cpus"]:.0f} | {floor_polling["small_across_cpus"]:.0f} |
+| a full field, over a Unix socket | {floor["full_unix_same_cpu"]:.0f} | {floor["full_unix_across_cpus"]:.0f} | \
+{floor_polling["full_unix_across_cpus"]:.0f} |
 
 Python adds a few µs a call on each side, so these are upper bounds of the floor. Against them, nak's
 client − server at 1,000/s: unary **{gap(open_loop):.0f} µs** (floor
