@@ -338,7 +338,14 @@ pub async fn run(config: &BenchConfig, progress: impl Fn(Progress)) -> Result<Re
     let queue = Tally::snapshot(&tally.queue)?;
     let generator = Tally::snapshot(&tally.generator)?;
     let requests = latency.len();
-    let (usage_from, usage_to) = (usage_from.await.ok(), Usage::now());
+    let usage_to = Usage::now();
+    // A run that ended before measuring started has no window to report on.
+    let usage_from = if usage_from.is_finished() {
+        usage_from.await.ok()
+    } else {
+        usage_from.abort();
+        None
+    };
     let steal_percent = usage_from.and_then(|from| from.steal_percent_until(&usage_to));
     let client_cpu_us = usage_from
         .and_then(|from| from.process_time_until(&usage_to))
