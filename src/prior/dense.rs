@@ -287,25 +287,22 @@ fn cholesky_large(a: &mut Dense, inverse_pivots: &mut Vec<f64>) -> Result<(), No
 }
 
 /// The Cholesky factor of a small system, in place with its rows down to the stride (the border
-/// row among them): left-looking, four columns at a time. The block first takes
-/// the products of every finished column at once (`S = A[:, j] − Σ_{p<first} L[:, p] L[j, p]`, the
-/// O(n³) part); then its 4 × 4 diagonal is factorized, and the rows below solve
-/// `L[r, block] · L_blockᵀ = S[r, block]`, every row independently of the others.
+/// row among them): left-looking, four columns at a time. Each block first takes the products of
+/// every finished column at once (`S = A[:, j] − Σ_{p<first} L[:, p] L[j, p]`, the O(n³) part) on
+/// its 4 × 4 diagonal, which is then factorized; the rows below take the same products and, while
+/// those are still in registers, solve `L[r, block] · L_blockᵀ = S[r, block]`, every row
+/// independently of the others.
 #[multiversion(targets("x86_64+avx512f+avx512vl+avx2+fma", "x86_64+avx2+fma", "aarch64+neon"))]
 fn cholesky_lower_blocked(a: &mut Dense, inverse_pivots: &mut Vec<f64>) -> Result<(), NotPositiveDefinite> {
+    // The diagonal of a block of columns is exactly one chunk of rows.
+    const { assert!(LANES == COLUMNS) };
     let (n, stride) = (a.n, a.stride);
     inverse_pivots.clear();
     for first in (0..n).step_by(COLUMNS) {
-        for_row_groups!(first / LANES * LANES, stride, |row, acc| {
-            for (c, sums) in acc.iter_mut().enumerate() {
-                let sums = sums.as_flattened_mut();
-                sums.copy_from_slice(&a.column(first + c)[row..][..sums.len()]);
-            }
-            accumulate(a, row, first, 0..first, -1.0, &mut acc);
-            for (c, sums) in acc.iter().enumerate() {
-                a.column_mut(first + c)[row..][..sums.len() * LANES].copy_from_slice(sums.as_flattened());
-            }
-        });
+        // The diagonal's chunk and the one below it, updated together: the stride leaves at least
+        // one chunk (the border row's) below every diagonal.
+        let mut head: Block<2> = Default::default();
+        update(a, first, first, &mut head);
         let mut block = [[0.0f64; COLUMNS]; COLUMNS];
         let mut inverse = [1.0f64; COLUMNS];
         for c in 0..COLUMNS {
@@ -317,9 +314,9 @@ fn cholesky_lower_blocked(a: &mut Dense, inverse_pivots: &mut Vec<f64>) -> Resul
             }
             for d in 0..c {
                 let known: f64 = (0..d).map(|e| block[c][e] * block[d][e]).sum();
-                block[c][d] = (a.get(j, first + d) - known) * inverse[d];
+                block[c][d] = (head[d][0][c] - known) * inverse[d];
             }
-            let pivot = a.get(j, j) - (0..c).map(|e| block[c][e] * block[c][e]).sum::<f64>();
+            let pivot = head[c][0][c] - (0..c).map(|e| block[c][e] * block[c][e]).sum::<f64>();
             // NaN fails this test too: a corrupt request is refused here rather than spread.
             if pivot.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
                 return Err(NotPositiveDefinite { index: j });
@@ -328,28 +325,70 @@ fn cholesky_lower_blocked(a: &mut Dense, inverse_pivots: &mut Vec<f64>) -> Resul
             // 1/√p as √p · (1/p): the division runs beside the root instead of after it.
             inverse[c] = pivot.recip() * block[c][c];
             inverse_pivots.push(inverse[c]);
-            for (d, &value) in block[c][..=c].iter().enumerate() {
-                a.set(j, first + d, value);
+        }
+        let mut below: Block<1> = std::array::from_fn(|c| [head[c][1]]);
+        solve_rows(&block, &inverse, &mut below);
+        for (column, [rows]) in head.iter_mut().zip(below) {
+            column[1] = rows;
+        }
+        store(a, first, first, &head);
+        // Over the diagonal chunk's S, whose entries above the diagonal are left as they are.
+        for (c, row) in block.iter().enumerate().take(n - first) {
+            for (d, &value) in row[..=c].iter().enumerate() {
+                a.set(first + c, first + d, value);
             }
         }
-        let below = first + COLUMNS;
-        let columns = &mut a.values[first * stride..(first + COLUMNS) * stride];
-        let (c0, rest) = columns.split_at_mut(stride);
-        let (c1, rest) = rest.split_at_mut(stride);
-        let (c2, c3) = rest.split_at_mut(stride);
-        let rows = c0[below..]
-            .iter_mut()
-            .zip(&mut c1[below..])
-            .zip(c2[below..].iter_mut().zip(&mut c3[below..]));
-        for ((x0, x1), (x2, x3)) in rows {
-            *x0 *= inverse[0];
-            *x1 = (-*x0).mul_add(block[1][0], *x1) * inverse[1];
-            *x2 = (-*x1).mul_add(block[2][1], (-*x0).mul_add(block[2][0], *x2)) * inverse[2];
-            let partial = (-*x1).mul_add(block[3][1], (-*x0).mul_add(block[3][0], *x3));
-            *x3 = (-*x2).mul_add(block[3][2], partial) * inverse[3];
+        let mut row = first + 2 * LANES;
+        while row < stride {
+            if stride - row >= 2 * LANES {
+                let mut rows: Block<2> = Default::default();
+                update(a, row, first, &mut rows);
+                solve_rows(&block, &inverse, &mut rows);
+                store(a, row, first, &rows);
+                row += 2 * LANES;
+            } else {
+                let mut rows: Block<1> = Default::default();
+                update(a, row, first, &mut rows);
+                solve_rows(&block, &inverse, &mut rows);
+                store(a, row, first, &rows);
+                row += LANES;
+            }
         }
     }
     Ok(())
+}
+
+/// The `R` chunks of rows from `row` in columns `first..first + COLUMNS`, less the products of the
+/// finished columns `0..first` ([`cholesky_lower_blocked`]'s `S`).
+#[inline(always)]
+fn update<const R: usize>(a: &Dense, row: usize, first: usize, acc: &mut Block<R>) {
+    for (c, sums) in acc.iter_mut().enumerate() {
+        let sums = sums.as_flattened_mut();
+        sums.copy_from_slice(&a.column(first + c)[row..][..sums.len()]);
+    }
+    accumulate(a, row, first, 0..first, -1.0, acc);
+}
+
+/// Writes `acc` back to its rows of columns `first..first + COLUMNS`.
+#[inline(always)]
+fn store<const R: usize>(a: &mut Dense, row: usize, first: usize, acc: &Block<R>) {
+    for (c, sums) in acc.iter().enumerate() {
+        a.column_mut(first + c)[row..][..R * LANES].copy_from_slice(sums.as_flattened());
+    }
+}
+
+/// Solves `X · Lᵀ = S` for the rows of `acc` (`S` in, `X` out), with `L` the block's factorized
+/// diagonal and `inverse` its inverse pivots: forward along the four columns, every row at once.
+#[inline(always)]
+fn solve_rows<const R: usize>(block: &[[f64; COLUMNS]; COLUMNS], inverse: &[f64; COLUMNS], acc: &mut Block<R>) {
+    let [c0, c1, c2, c3] = acc.each_mut().map(|column| column.as_flattened_mut());
+    for (((x0, x1), x2), x3) in c0.iter_mut().zip(c1).zip(c2).zip(c3) {
+        *x0 *= inverse[0];
+        *x1 = (-*x0).mul_add(block[1][0], *x1) * inverse[1];
+        *x2 = (-*x1).mul_add(block[2][1], (-*x0).mul_add(block[2][0], *x2)) * inverse[2];
+        let partial = (-*x1).mul_add(block[3][1], (-*x0).mul_add(block[3][0], *x3));
+        *x3 = (-*x2).mul_add(block[3][2], partial) * inverse[3];
+    }
 }
 
 /// Solves `L y = b` in place (`n` values), by columns: once `y_j` is known, its share is removed
