@@ -124,6 +124,8 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
         let listener = tokio::net::TcpListener::bind(config.listen)
             .await
             .with_context(|| format!("cannot listen on {}", config.listen))?;
+        // Before "listening": from then on, SIGTERM stops the server gracefully.
+        let shutdown = serve::shutdown_signal();
         // Scripts and tests read this line to find a port chosen with --listen 127.0.0.1:0.
         info!(address = %listener.local_addr()?, "listening");
         let recorder = start_recorder(&config, &engine)?;
@@ -137,7 +139,7 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
         options.metrics = bind(config.metrics_listen, "metrics").await?;
         options.health = bind(config.health_listen, "health checks").await?;
         options.ui = bind(config.ui, "viewer").await?;
-        serve::run(engine, listener, options, serve::shutdown_signal()).await?;
+        serve::run(engine, listener, options, shutdown).await?;
         if let Some(recorder) = recorder {
             recorder.close().context("the recording was not finished cleanly")?;
         }

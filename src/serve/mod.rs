@@ -370,26 +370,30 @@ async fn report_drops(recorder: std::sync::Weak<Recorder>) {
     }
 }
 
-/// Completes on SIGINT or SIGTERM.
-pub async fn shutdown_signal() {
-    let interrupt = tokio::signal::ctrl_c();
+/// Completes on SIGINT or SIGTERM. On Unix the handlers are installed when this is called, not when
+/// the future is first polled: a signal that comes after the server has said it is listening, but
+/// before the server polls this, still stops it gracefully instead of killing it.
+pub fn shutdown_signal() -> impl std::future::Future<Output = ()> + Send {
     #[cfg(unix)]
     {
-        let mut terminate = match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-            Ok(s) => s,
-            Err(e) => {
-                tracing::warn!(error = %e, "cannot listen for SIGTERM; stop with SIGINT");
-                let _ = interrupt.await;
-                return;
+        use tokio::signal::unix::{SignalKind, signal};
+        let handlers = signal(SignalKind::interrupt()).and_then(|i| Ok((i, signal(SignalKind::terminate())?)));
+        async move {
+            let (mut interrupt, mut terminate) = match handlers {
+                Ok(handlers) => handlers,
+                Err(e) => {
+                    tracing::warn!(error = %e, "cannot install signal handlers; stop with SIGKILL");
+                    return std::future::pending().await;
+                }
+            };
+            tokio::select! {
+                _ = interrupt.recv() => info!("SIGINT: shutting down"),
+                _ = terminate.recv() => info!("SIGTERM: shutting down"),
             }
-        };
-        tokio::select! {
-            _ = interrupt => info!("SIGINT: shutting down"),
-            _ = terminate.recv() => info!("SIGTERM: shutting down"),
         }
     }
     #[cfg(not(unix))]
-    {
-        let _ = interrupt.await;
+    async {
+        let _ = tokio::signal::ctrl_c().await;
     }
 }
