@@ -340,19 +340,11 @@ fn cholesky_lower_blocked(a: &mut Dense, inverse_pivots: &mut Vec<f64>) -> Resul
         }
         let mut row = first + 2 * LANES;
         while row < stride {
-            if stride - row >= 2 * LANES {
-                let mut rows: Block<2> = Default::default();
-                update(a, row, first, &mut rows);
-                solve_rows(&block, &inverse, &mut rows);
-                store(a, row, first, &rows);
-                row += 2 * LANES;
+            row += if stride - row >= 2 * LANES {
+                factor_rows::<2>(a, row, first, &block, &inverse)
             } else {
-                let mut rows: Block<1> = Default::default();
-                update(a, row, first, &mut rows);
-                solve_rows(&block, &inverse, &mut rows);
-                store(a, row, first, &rows);
-                row += LANES;
-            }
+                factor_rows::<1>(a, row, first, &block, &inverse)
+            };
         }
     }
     Ok(())
@@ -367,6 +359,23 @@ fn update<const R: usize>(a: &Dense, row: usize, first: usize, acc: &mut Block<R
         sums.copy_from_slice(&a.column(first + c)[row..][..sums.len()]);
     }
     accumulate(a, row, first, 0..first, -1.0, acc);
+}
+
+/// The factor's `R` chunks of rows from `row` in columns `first..first + COLUMNS`, below the block's
+/// factorized diagonal: updated, solved and stored in one go. Returns the rows done.
+#[inline(always)]
+fn factor_rows<const R: usize>(
+    a: &mut Dense,
+    row: usize,
+    first: usize,
+    block: &[[f64; COLUMNS]; COLUMNS],
+    inverse: &[f64; COLUMNS],
+) -> usize {
+    let mut rows: Block<R> = [[[0.0; LANES]; R]; COLUMNS];
+    update(a, row, first, &mut rows);
+    solve_rows(block, inverse, &mut rows);
+    store(a, row, first, &rows);
+    R * LANES
 }
 
 /// Writes `acc` back to its rows of columns `first..first + COLUMNS`.
