@@ -19,6 +19,8 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -96,6 +98,27 @@ def python_client(load: Load, out: Path, seconds: int) -> dict[str, Any]:
     return result
 
 
+@contextmanager
+def pinned_pair(cpu_parent: int, cpu_child: int, child: Callable[[], None]) -> Iterator[None]:
+    """Runs `child` in a forked process pinned to `cpu_child` while this process, pinned to
+    `cpu_parent` for the duration, runs the body; then restores this process's CPUs and waits for
+    the child."""
+    pid = os.fork()
+    if pid == 0:
+        try:
+            os.sched_setaffinity(0, {cpu_child})
+            child()
+        finally:
+            os._exit(0)
+    allowed = os.sched_getaffinity(0)
+    os.sched_setaffinity(0, {cpu_parent})
+    try:
+        yield
+    finally:
+        os.sched_setaffinity(0, allowed)
+        os.waitpid(pid, 0)
+
+
 def wake_round_trip_us(cpu_a: int, cpu_b: int, rounds: int = 20_000) -> float:
     """Mean round trip (µs) of one byte passed back and forth through two pipes between
     two processes pinned to `cpu_a` and `cpu_b`: each trip wakes the other side twice. On one CPU
@@ -104,25 +127,21 @@ def wake_round_trip_us(cpu_a: int, cpu_b: int, rounds: int = 20_000) -> float:
     to_child, from_parent = os.pipe()
     to_parent, from_child = os.pipe()
     warmup = 500
-    pid = os.fork()
-    if pid == 0:
-        os.sched_setaffinity(0, {cpu_b})
+
+    def echo() -> None:
         for _ in range(warmup + rounds):
             os.read(to_child, 1)
             os.write(from_child, b"x")
-        os._exit(0)
-    allowed = os.sched_getaffinity(0)
-    os.sched_setaffinity(0, {cpu_a})
+
     try:
-        for i in range(warmup + rounds):
-            if i == warmup:
-                start = time.perf_counter_ns()
-            os.write(from_parent, b"x")
-            os.read(to_parent, 1)
-        elapsed = time.perf_counter_ns() - start
+        with pinned_pair(cpu_a, cpu_b, echo):
+            for i in range(warmup + rounds):
+                if i == warmup:
+                    start = time.perf_counter_ns()
+                os.write(from_parent, b"x")
+                os.read(to_parent, 1)
+            elapsed = time.perf_counter_ns() - start
     finally:
-        os.sched_setaffinity(0, allowed)
-        os.waitpid(pid, 0)
         for fd in (to_child, from_parent, to_parent, from_child):
             os.close(fd)
     return elapsed / rounds / 1e3
@@ -159,34 +178,28 @@ def loopback_floor_us(
             if not unix_socket:
                 connection.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
 
-        pid = os.fork()
-        if pid == 0:
-            os.sched_setaffinity(0, {cpu_server})
+        def answer_each_request() -> None:
             connection, _ = listener.accept()
             no_delay(connection)
             answer, request = bytes(answer_bytes), bytearray(REQUEST_BYTES)
             while connection.recv_into(request, REQUEST_BYTES, socket.MSG_WAITALL) == REQUEST_BYTES:
                 connection.sendall(answer)
-            os._exit(0)
-        listener.close()
-        allowed = os.sched_getaffinity(0)
-        os.sched_setaffinity(0, {cpu_client})
+
         times = []
-        try:
+        with pinned_pair(cpu_client, cpu_server, answer_each_request):
+            listener.close()
             with socket.socket(family) as client:
                 client.connect(address)
                 no_delay(client)
                 question, reply = bytes(REQUEST_BYTES), bytearray(answer_bytes)
-                for i in range(rounds + 300):
+                warmup = 300
+                for i in range(warmup + rounds):
                     time.sleep(0.001)
                     start = time.perf_counter_ns()
                     client.sendall(question)
                     client.recv_into(reply, answer_bytes, socket.MSG_WAITALL)
-                    if i >= 300:
+                    if i >= warmup:
                         times.append(time.perf_counter_ns() - start)
-        finally:
-            os.sched_setaffinity(0, allowed)
-            os.waitpid(pid, 0)
     return statistics.median(times) / 1e3
 
 
@@ -316,7 +329,6 @@ def render(args: argparse.Namespace) -> None:
         for r in [results[f"{server_kind.key}/bench/{load.key}"]]
     )
     old = results["after/old-bench/unary-1k"]
-    new = results["after/bench/unary-1k"]
     wake = results["wake_round_trip_us"]
     closed, one_cpu = results["after/bench/unary-closed"], results["after/bench-one-cpu/unary-closed"]
     polled = results["polling/bench/unary-closed"]
@@ -405,9 +417,9 @@ CPU is slow, see below); in a closed loop, without it, a unary call cost the cli
 
 The same after server, unary at 1,000 requests/s, loaded by the before and the after `nak bench`:
 p50 **{old["latency_us"]["p50"]:.0f} µs** with the before generator (a `nanosleep` thread handing each
-request to the runtime), **{new["latency_us"]["p50"]:.0f} µs** with the after one (a timerfd on the
+request to the runtime), **{open_loop["latency_us"]["p50"]:.0f} µs** with the after one (a timerfd on the
 runtime's own thread). The after generator reports its delay from due time to hand-over to the gRPC
-client: p50 **{new["generator_us"]["p50"]:.0f} µs**, p99 **{new["generator_us"]["p99"]:.0f} µs**.
+client: p50 **{open_loop["generator_us"]["p50"]:.0f} µs**, p99 **{open_loop["generator_us"]["p99"]:.0f} µs**.
 
 ## Waking an idle CPU, and not letting CPUs halt
 
