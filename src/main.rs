@@ -93,6 +93,9 @@ enum MeshCommand {
         input: PathBuf,
         output: PathBuf,
     },
+    /// Split every tetrahedron into eight at its edge midpoints (about 7× the nodes per level) and
+    /// write the finer mesh as a VTK unstructured grid, with a model.toml beside it if there is none.
+    Refine(cli::mesh_refine::RefineArgs),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -127,6 +130,9 @@ fn main() -> anyhow::Result<()> {
             let mesh = cli::engine::load_mesh(path.as_deref())?;
             print_or_pipe_closed(|out| cli::mesh_info::print(out, &mesh))
         }
+        Command::Mesh {
+            command: MeshCommand::Refine(args),
+        } => cli::mesh_refine::run(&args),
         Command::Mesh {
             command: MeshCommand::Convert { input, output },
         } => {

@@ -1,4 +1,4 @@
-//! The `nak` binary: serve (with graceful shutdown on SIGTERM), predict and mesh info.
+//! The `nak` binary: serve (with graceful shutdown on SIGTERM), predict, mesh info and refine.
 
 mod common;
 
@@ -130,6 +130,48 @@ fn mesh_info_summarizes_and_refuses_missing_files() {
     let output = nak().args(["mesh", "info", "no/such.msh"]).output().unwrap();
     assert!(!output.status.success());
     assert!(String::from_utf8_lossy(&output.stderr).contains("no/such.msh"));
+}
+
+#[test]
+fn mesh_refine_writes_a_finer_mesh_that_loads_with_its_configuration() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("finer/liver.vtu");
+    let output = nak()
+        .args(["mesh", "refine"])
+        .arg(repo("models/phantom-liver/liver-coarse.msh"))
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    let said = String::from_utf8_lossy(&output.stdout);
+    assert!(said.contains("model.toml written"), "{said}");
+    let config = std::fs::read_to_string(dir.path().join("finer/model.toml")).unwrap();
+    assert!(config.contains("default = \"liver.vtu\""), "{config}");
+    // The directory serves as a mesh source now, and the mesh is the coarse one split once.
+    let info = nak()
+        .args(["mesh", "info"])
+        .arg(dir.path().join("finer"))
+        .output()
+        .unwrap();
+    assert!(info.status.success(), "{}", String::from_utf8_lossy(&info.stderr));
+    let text = String::from_utf8_lossy(&info.stdout);
+    let coarse = nak()
+        .args(["mesh", "info"])
+        .arg(repo("models/phantom-liver/liver-coarse.msh"))
+        .output()
+        .unwrap();
+    let tets = |text: &str| -> usize {
+        let line = text.lines().find(|l| l.starts_with("tetrahedra")).unwrap();
+        line.split_whitespace().nth(1).unwrap().parse().unwrap()
+    };
+    assert_eq!(tets(&text), 8 * tets(&String::from_utf8_lossy(&coarse.stdout)));
+    let refused = nak()
+        .args(["mesh", "refine", "embedded"])
+        .arg(dir.path().join("liver.msh"))
+        .output()
+        .unwrap();
+    assert!(!refused.status.success());
+    assert!(String::from_utf8_lossy(&refused.stderr).contains("name it .vtu or .vtk"));
 }
 
 #[test]

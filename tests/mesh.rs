@@ -364,3 +364,46 @@ fn refuses_a_mesh_without_configuration() {
         "{err}"
     );
 }
+
+#[test]
+fn refinement_splits_every_tetrahedron_in_eight_and_keeps_the_organ() {
+    let coarse = phantom("liver-coarse.msh");
+    let fine = coarse.refined().unwrap();
+    let edges: BTreeSet<(u32, u32)> = coarse
+        .tets
+        .iter()
+        .flat_map(|t| [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)].map(|(i, j)| (t[i].min(t[j]), t[i].max(t[j]))))
+        .collect();
+    assert_eq!(fine.node_count(), coarse.node_count() + edges.len());
+    assert_eq!(fine.tets.len(), 8 * coarse.tets.len());
+    assert_eq!(fine.surface.len(), 4 * coarse.surface.len());
+    assert_eq!(&fine.positions[..coarse.node_count()], &coarse.positions[..]);
+    // The same organ: each region's volume (to rounding), and the boundary conditions where they were.
+    for (f, c) in fine.regions.iter().zip(&coarse.regions) {
+        assert_eq!(f.name, c.name);
+        assert!(
+            (f.volume - c.volume).abs() <= 1e-12 * c.volume,
+            "{}: {} vs {}",
+            c.name,
+            f.volume,
+            c.volume
+        );
+    }
+    for (name, nodes) in &coarse.node_sets {
+        let refined = &fine.node_sets[name];
+        assert!(
+            nodes.iter().all(|n| refined.binary_search(n).is_ok()),
+            "{name} lost nodes"
+        );
+        assert!(refined.len() > nodes.len(), "{name} gained no midpoints");
+        assert!(
+            refined.iter().all(|&n| fine.is_surface[n as usize]),
+            "{name} left the surface"
+        );
+    }
+    assert_ne!(fine.content_hash, coarse.content_hash);
+    // No sliver from the octahedra: the worst children are no flatter than a fraction of the
+    // parents' worst.
+    let (qc, qf) = (coarse.quality(), fine.quality());
+    assert!(qf.min_dihedral_deg >= 0.5 * qc.min_dihedral_deg, "{qf:?} vs {qc:?}");
+}

@@ -6,6 +6,7 @@ pub mod engine;
 pub mod eval;
 pub mod fields;
 pub mod mesh_info;
+pub mod mesh_refine;
 pub mod predict;
 pub mod replay;
 pub mod serve;

@@ -11,6 +11,7 @@
 mod config;
 pub mod msh;
 pub mod quality;
+mod refine;
 mod source;
 pub mod topology;
 pub mod vtk;
@@ -18,7 +19,7 @@ pub mod vtk;
 use std::collections::{BTreeMap, HashMap};
 
 pub use config::{Body, GraspRegion, Material, MeshConfig, PriorParams, Sampling};
-pub use source::{EMBEDDED_NAME, MeshSource, load};
+pub use source::{EMBEDDED_NAME, MeshSource, config_text, load};
 use topology::{Vec3, fmt_point, tet_volume};
 
 /// Everything that can be wrong with a mesh or its configuration; messages say what and where.

@@ -78,6 +78,23 @@ fn load_file(path: &Path, config: impl FnOnce() -> Result<MeshConfig, MeshError>
     }
 }
 
+/// The text of the `model.toml` a source's mesh is configured by.
+pub fn config_text(source: &MeshSource) -> Result<String, MeshError> {
+    let dir = match source {
+        MeshSource::Embedded => return Ok(EMBEDDED_CONFIG.to_owned()),
+        MeshSource::Directory(dir) => dir.as_path(),
+        MeshSource::File(path) => path
+            .parent()
+            .filter(|d| !d.as_os_str().is_empty())
+            .unwrap_or(Path::new(".")),
+    };
+    let path = dir.join("model.toml");
+    String::from_utf8(read(&path)?).map_err(|_| MeshError::Config {
+        path: path.display().to_string(),
+        message: "not UTF-8 text".to_owned(),
+    })
+}
+
 /// Loads and validates the mesh a source names.
 pub fn load(source: &MeshSource) -> Result<TetMesh, MeshError> {
     match source {
