@@ -204,6 +204,9 @@ fn on_the_gpu_prior_and_residual_in_one_dispatch_equal_the_cpu_path() {
             let d = max_difference(&on_gpu.displacements, &expected);
             assert!(d <= 1e-5 * largest(&expected), "{model}: {d} of {}", largest(&expected));
             assert!(on_gpu.timing.prior_us > 0.0 && on_gpu.timing.network_us > 0.0);
+            // The phases say it ran on the GPU, as one request's dispatch.
+            let phases = on_gpu.timing.gpu.unwrap_or_else(|| panic!("{model}: no GPU phases"));
+            assert!(phases.batch == 1 && phases.wait_us > 0.0, "{phases:?}");
         }
     }
 }

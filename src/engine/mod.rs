@@ -15,7 +15,7 @@ pub use model::{
 
 use crate::mesh::TetMesh;
 use crate::prior::gpu::GpuError;
-use crate::prior::{InteractionPoints, Kelvinlet, NodeCloud, PriorBackend, Workspace, backend};
+use crate::prior::{GpuPhases, InteractionPoints, Kelvinlet, NodeCloud, PriorBackend, Workspace, backend};
 
 /// What the server accepts.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -88,6 +88,8 @@ pub struct Timing {
     pub prior_us: f32,
     pub network_us: f32,
     pub total_us: f32,
+    /// Where the prior's time went, when its field was evaluated on the GPU.
+    pub gpu: Option<GpuPhases>,
 }
 
 /// The default [`Limits::quick_terms`]: about 150 µs of field on one core of the machine in
@@ -158,12 +160,17 @@ impl Engine {
         }
     }
 
-    /// Evaluates the prior of every whole-mesh and surface request on `backend` (listed node subsets
-    /// stay on the CPU: they are small and change per request). Returns what was chosen and why.
+    /// Evaluates the prior of whole-mesh and surface requests on `backend` (`auto` decides for each
+    /// of the two; listed node subsets stay on the CPU: they are small and change per request).
+    /// Returns what was chosen and why.
     /// Models added before or after move their own mesh-sized data to the GPU too.
     pub fn use_prior_backend(&mut self, backend: PriorBackend) -> Result<String, GpuError> {
         let kelvinlet = Kelvinlet::new(self.mesh.config.prior);
-        let choice = backend::attach(backend, &kelvinlet, &mut [&mut self.all_nodes, &mut self.surface_nodes])?;
+        let choice = backend::attach(
+            backend,
+            &kelvinlet,
+            &mut [("all nodes", &mut self.all_nodes), ("surface", &mut self.surface_nodes)],
+        )?;
         for model in self.models.values() {
             self.attach_to_gpu(model.as_ref());
         }
@@ -177,9 +184,9 @@ impl Engine {
     }
 
     /// Lets `model` upload its data to the GPU the clouds live on (in the order
-    /// [`Self::use_prior_backend`] made them resident); a failure leaves it on the CPU.
+    /// [`Self::use_prior_backend`] uploaded them); a failure leaves it on the CPU.
     fn attach_to_gpu(&self, model: &dyn DeformationModel) {
-        let Some(resident) = self.all_nodes.resident() else {
+        let Some(resident) = self.all_nodes.resident().or(self.surface_nodes.resident()) else {
             return;
         };
         let clouds = [None, Some(&self.mesh.surface_nodes[..])];
@@ -345,6 +352,7 @@ impl Engine {
             prior_us: stages.prior_us,
             network_us: stages.network_us,
             total_us: start.elapsed().as_secs_f32() * 1e6,
+            gpu: stages.gpu,
         };
         Ok(Prediction {
             model: model.info().name.clone(),

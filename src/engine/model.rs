@@ -7,7 +7,7 @@ use std::sync::Arc;
 
 use crate::mesh::TetMesh;
 use crate::prior::gpu::{GpuError, GpuPrior};
-use crate::prior::{Coefficients, InteractionPoints, Kelvinlet, NodeCloud, SolveError, Workspace};
+use crate::prior::{Coefficients, GpuPhases, InteractionPoints, Kelvinlet, NodeCloud, SolveError, Workspace};
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ModelKind {
@@ -46,6 +46,8 @@ pub struct ModelInfo {
 pub struct StageTiming {
     pub prior_us: f32,
     pub network_us: f32,
+    /// Where the prior's time went, when its field was evaluated on the GPU.
+    pub gpu: Option<GpuPhases>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -210,7 +212,8 @@ impl DeformationModel for KelvinletModel {
         timing: &mut StageTiming,
     ) -> Result<(), ModelError> {
         let start = std::time::Instant::now();
-        self.prior
+        timing.gpu = self
+            .prior
             .solve_and_evaluate(points, workspace, target.cloud, out.displacements)?;
         self.point_loads(points, &workspace.coefficients, out.forces);
         timing.prior_us = start.elapsed().as_secs_f32() * 1e6;

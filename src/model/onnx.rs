@@ -466,7 +466,8 @@ impl OnnxModel {
                 cloud: &self.all_nodes,
                 nodes: None,
             };
-            self.prior
+            timing.gpu = self
+                .prior
                 .field(points, every_node, &mut buffers.workspace, &mut buffers.prior)?;
             timing.prior_us = start.elapsed().as_secs_f32() * 1e6;
         }
@@ -506,7 +507,7 @@ impl OnnxModel {
                     *o += r;
                 }
                 buffers.network = network_out;
-                prior?;
+                timing.gpu = prior?;
                 net?;
                 timing.prior_us = prior_us;
                 timing.network_us = network_us;
@@ -552,7 +553,7 @@ impl OnnxModel {
                     let start = Instant::now();
                     let result = self.prior.field(points, target, workspace, out);
                     timing.prior_us = start.elapsed().as_secs_f32() * 1e6;
-                    result
+                    result.map(|gpu| timing.gpu = gpu)
                 },
                 || self.encode(points, input, network, &mut encoder_us),
             ),
@@ -616,11 +617,12 @@ impl OnnxModel {
             }
             Mode::Direct => &empty,
         };
-        let result = basis
+        let phases = basis
             .gpu()
             .evaluate_with_basis(kelvinlet, cloud, coefficients, basis, &buffers.network, out)
-            .map_err(|e| ModelError::Runtime(e.to_string()));
+            .map_err(|e| ModelError::Runtime(e.to_string()))?;
         timing.prior_us = start.elapsed().as_secs_f32() * 1e6;
-        result
+        timing.gpu = Some(phases);
+        Ok(())
     }
 }

@@ -6,7 +6,7 @@ use std::sync::Arc;
 
 use crate::engine::{KelvinletModel, ModelError, Target};
 use crate::fem::GreenFunctions;
-use crate::prior::{InteractionPoints, Kelvinlet, Workspace};
+use crate::prior::{GpuPhases, InteractionPoints, Kelvinlet, Workspace};
 
 pub enum ModelPrior {
     Kelvinlet(Kelvinlet),
@@ -14,21 +14,21 @@ pub enum ModelPrior {
 }
 
 impl ModelPrior {
-    /// Writes the prior's displacement at `target`'s nodes into `out`, row-major (n, 3).
+    /// Writes the prior's displacement at `target`'s nodes into `out`, row-major (n, 3); returns
+    /// the GPU's phases when it was evaluated there.
     pub fn field(
         &self,
         points: &InteractionPoints,
         target: Target<'_>,
         workspace: &mut Workspace,
         out: &mut [f32],
-    ) -> Result<(), ModelError> {
+    ) -> Result<Option<GpuPhases>, ModelError> {
         match self {
             ModelPrior::Kelvinlet(kelvinlet) => {
-                kelvinlet.solve_and_evaluate(points, workspace, target.cloud, out)?;
-                Ok(())
+                Ok(kelvinlet.solve_and_evaluate(points, workspace, target.cloud, out)?)
             }
             // The grasp forces the Green's functions also give are not the network's: dropped.
-            ModelPrior::Green(green) => green.solve(points, target.nodes, out, &mut Vec::new()),
+            ModelPrior::Green(green) => green.solve(points, target.nodes, out, &mut Vec::new()).map(|()| None),
         }
     }
 

@@ -2,7 +2,8 @@
 // u(x) = Σ_j [(a/r_ε + b/r_ε³) k_j + r (r·k_j)/r_ε³],  r = x − x_j,  r_ε = sqrt(|r|² + ε²),
 // with the scale s folded into the coefficients k_j (as in the CPU kernel, kernel.rs).
 // A request may add a resident basis's field Φ g (a reduced network's residual, DESIGN.md §7) in the
-// same pass: Φ's rows [N, 3, M] for the request's cloud, g in `points` after its interaction points.
+// same pass: Φ for the request's cloud stored mode by mode, [M, 3, N], so that neighbouring
+// invocations read neighbouring words; g in `points` after its interaction points.
 // One dispatch serves a batch of requests: workgroup row y is request y.
 
 struct Job {
@@ -47,10 +48,11 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
         let inv3 = inv * inv * inv;
         u += (job.a * inv + job.b * inv3) * k + (dot(r, k) * inv3) * r;
     }
-    let row = job.basis_offset + 3u * job.modes * i;
+    let n = job.cloud_len;
     for (var m = 0u; m < job.modes; m++) {
         let g = points[job.coefficient_offset + m / 4u][m % 4u];
-        u += g * vec3<f32>(basis[row + m], basis[row + job.modes + m], basis[row + 2u * job.modes + m]);
+        let at = job.basis_offset + 3u * m * n + i;
+        u += g * vec3<f32>(basis[at], basis[at + n], basis[at + 2u * n]);
     }
     let o = job.out_offset + 3u * i;
     field[o] = u.x;

@@ -11,11 +11,8 @@ use multiversion::multiversion;
 use multiversion::target::target_cfg;
 use rayon::prelude::*;
 
-use super::gpu::Resident;
-use super::{Coefficients, InteractionPoints, Kelvinlet, SolveError, Workspace};
-
-/// Nodes per block: 64 × 6 f32 arrays stay in L1 and fill whole AVX-512 registers.
-pub const BLOCK: usize = 64;
+use super::cloud::{BLOCK, NodeCloud};
+use super::{Coefficients, Kelvinlet};
 
 /// Below this many nodes one core is faster than the cost of waking others.
 const PARALLEL_MIN_NODES: usize = 4096;
@@ -24,65 +21,6 @@ const PARALLEL_MIN_NODES: usize = 4096;
 /// whole field is handed to the pool and waited for: about 80 µs of wake-ups on a small virtual
 /// machine, worth paying only for fields several times that long (node–point pairs).
 const HANDOVER_MIN_TERMS: usize = 1 << 21;
-
-/// The most interaction points whose solve (about 40 µs at 32 points) ends while a thread woken at
-/// its start is still looking for work.
-const PREWAKE_MAX_POINTS: usize = 32;
-
-/// Positions of the nodes a field is evaluated at: f32, structure of arrays, in whole blocks (the
-/// last one padded with zeros, whose results are never written out).
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct NodeCloud {
-    len: usize,
-    x: Vec<[f32; BLOCK]>,
-    y: Vec<[f32; BLOCK]>,
-    z: Vec<[f32; BLOCK]>,
-    /// Set when the cloud is also uploaded to the GPU: fields are then evaluated there.
-    resident: Option<Resident>,
-}
-
-impl NodeCloud {
-    pub fn new(positions: impl ExactSizeIterator<Item = [f64; 3]>) -> Self {
-        let len = positions.len();
-        let blocks = len.div_ceil(BLOCK);
-        let mut cloud = NodeCloud {
-            len,
-            x: vec![[0.0; BLOCK]; blocks],
-            y: vec![[0.0; BLOCK]; blocks],
-            z: vec![[0.0; BLOCK]; blocks],
-            resident: None,
-        };
-        for (i, p) in positions.enumerate() {
-            let (b, o) = (i / BLOCK, i % BLOCK);
-            cloud.x[b][o] = p[0] as f32;
-            cloud.y[b][o] = p[1] as f32;
-            cloud.z[b][o] = p[2] as f32;
-        }
-        cloud
-    }
-
-    pub fn len(&self) -> usize {
-        self.len
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.len == 0
-    }
-
-    pub fn position(&self, block: usize, offset: usize) -> [f32; 3] {
-        [self.x[block][offset], self.y[block][offset], self.z[block][offset]]
-    }
-
-    /// Evaluates fields over this cloud on the GPU from now on (the cloud must be uploaded there).
-    pub fn make_resident(&mut self, resident: Resident) {
-        self.resident = Some(resident);
-    }
-
-    /// Where fields over this cloud are evaluated, if on a GPU.
-    pub fn resident(&self) -> Option<&Resident> {
-        self.resident.as_ref()
-    }
-}
 
 /// Kernel constants in f32.
 #[derive(Clone, Copy)]
@@ -93,50 +31,8 @@ struct Constants {
 }
 
 impl Kelvinlet {
-    /// Writes the field of `coefficients` at every node of `cloud` into `out`, row-major (N, 3);
-    /// `out` holds `3 * cloud.len()` values.
-    pub fn evaluate(&self, coefficients: &Coefficients, cloud: &NodeCloud, out: &mut [f32]) {
-        debug_assert_eq!(
-            out.len(),
-            3 * cloud.len(),
-            "output buffer does not match the node cloud"
-        );
-        if let Some(r) = &cloud.resident {
-            match r.gpu.evaluate(self, r.cloud, coefficients, out) {
-                Ok(()) => return,
-                // The answer is still owed: the CPU gives the same field, a little later.
-                Err(e) => tracing::warn!("GPU prior failed, this request is evaluated on the CPU: {e}"),
-            }
-        }
-        self.evaluate_on_cpu(coefficients, cloud, out);
-    }
-
-    /// Solves for `points` and writes their field at every node of `cloud` into `out`: a request's
-    /// whole prior.
-    ///
-    /// When the field is about to be split across rayon's pool from one of its threads, another
-    /// thread is woken before the solve rather than after it: a sleeping thread takes about as long
-    /// to start as the solve itself (20–30 µs on a small virtual machine: `cargo bench --bench
-    /// prior`, `solve+field` against `solve` and `field` apart), and rayon keeps a woken thread
-    /// looking for work for longer than that before it sleeps again. A longer solve would outlast that
-    /// search, and the thread would have to be woken twice.
-    pub fn solve_and_evaluate(
-        &self,
-        points: &InteractionPoints,
-        workspace: &mut Workspace,
-        cloud: &NodeCloud,
-        out: &mut [f32],
-    ) -> Result<(), SolveError> {
-        let on_cpu = cloud.resident.is_none();
-        if points.len() <= PREWAKE_MAX_POINTS && on_cpu && splits_over_pool(cloud, points.len()) {
-            rayon::spawn(|| {});
-        }
-        self.solve(points, workspace)?;
-        self.evaluate(&workspace.coefficients, cloud, out);
-        Ok(())
-    }
-
-    /// [`Self::evaluate`] on the CPU whatever the cloud's residence (reference and fallback).
+    /// The field of `coefficients` at every node of `cloud`, written into `out` ((N, 3) rows) on
+    /// the CPU, whatever the cloud's residence (the CPU backend, the GPU's reference and fallback).
     pub fn evaluate_on_cpu(&self, coefficients: &Coefficients, cloud: &NodeCloud, out: &mut [f32]) {
         let constants = Constants {
             a: self.a as f32,
@@ -162,9 +58,9 @@ impl Kelvinlet {
 }
 
 /// Whether a field of `points` over `cloud` is spread over rayon's pool from this thread.
-fn splits_over_pool(cloud: &NodeCloud, points: usize) -> bool {
+pub(super) fn splits_over_pool(cloud: &NodeCloud, points: usize) -> bool {
     let in_pool = rayon::current_thread_index().is_some();
-    cloud.len >= PARALLEL_MIN_NODES && (in_pool || cloud.len.saturating_mul(points) >= HANDOVER_MIN_TERMS)
+    cloud.len() >= PARALLEL_MIN_NODES && (in_pool || cloud.len().saturating_mul(points) >= HANDOVER_MIN_TERMS)
 }
 
 /// Nodes evaluated together against every interaction point: one AVX-512 register per coordinate

@@ -2,16 +2,19 @@
 //!
 //! For interaction points `x_j` with prescribed displacements `u_j`, the coefficients `k` solve
 //! `(ΓᵀΓ + λI) k = Γᵀu` (f64, [`solve`]), and the field `u(x) = Σ_j Γ_j(x) k_j` is evaluated over
-//! the nodes in f32 by a vectorized, multi-core kernel ([`kernel`]).
+//! the nodes in f32 by a vectorized, multi-core kernel ([`kernel`]) or on the GPU ([`gpu`]), as
+//! [`backend`] decides per node cloud ([`cloud`]).
 
 pub mod backend;
+pub mod cloud;
 mod dense;
 pub mod gpu;
 pub mod kernel;
 pub mod solve;
 
 pub use backend::PriorBackend;
-pub use kernel::NodeCloud;
+pub use cloud::{NodeCloud, Resident};
+pub use gpu::GpuPhases;
 pub use solve::{Coefficients, SolveError, Workspace};
 
 use crate::mesh::PriorParams;
