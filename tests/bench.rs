@@ -56,6 +56,10 @@ async fn open_loop_sends_exactly_the_offered_load_in_both_modes() {
             "{mode:?}: generator {g:?}, latency {l:?}"
         );
         assert!(report.server_queue_us.p50 <= report.server_us.p50);
+        // The prior is part of the server's time; this server's is on the CPU.
+        let prior = report.server_prior_us.p50;
+        assert!(prior > 0.0 && prior <= report.server_us.p50, "{prior}");
+        assert!(report.gpu.is_none());
     }
     server.stop().await;
 }

@@ -22,7 +22,7 @@ use hdrhistogram::Histogram;
 use tokio::time::Instant;
 
 use host::Usage;
-pub use report::{Interval, Percentiles, Report};
+pub use report::{GpuSummary, Interval, Percentiles, Report};
 pub use requests::{RequestsError, draw, sampler_for};
 
 use crate::client::{Client, ClientConfig, ClientError, connect};
@@ -86,6 +86,8 @@ struct Tally {
     refused: Mutex<Histogram<u64>>,
     server: Mutex<Histogram<u64>>,
     queue: Mutex<Histogram<u64>>,
+    prior: Mutex<Histogram<u64>>,
+    gpu: GpuTally,
     generator: Mutex<Histogram<u64>>,
     errors: Mutex<BTreeMap<String, u64>>,
     intervals: Option<Intervals>,
@@ -133,6 +135,15 @@ impl Tally {
             refused: Mutex::new(histogram()?),
             server: Mutex::new(histogram()?),
             queue: Mutex::new(histogram()?),
+            prior: Mutex::new(histogram()?),
+            gpu: GpuTally {
+                answers: AtomicU64::new(0),
+                dispatched: AtomicU64::new(0),
+                queue: Mutex::new(histogram()?),
+                submit: Mutex::new(histogram()?),
+                wait: Mutex::new(histogram()?),
+                copy: Mutex::new(histogram()?),
+            },
             generator: Mutex::new(histogram()?),
             errors: Mutex::new(BTreeMap::new()),
             intervals,
@@ -182,6 +193,10 @@ impl Tally {
                 record(&self.answered, micros);
                 record(&self.server, server.total_us.max(1.0) as u64);
                 record(&self.queue, server.queue_us.max(1.0) as u64);
+                record(&self.prior, server.prior_us.max(1.0) as u64);
+                if let Some(gpu) = server.gpu {
+                    self.gpu.record(gpu);
+                }
             }
             Err(code) => {
                 record(&self.refused, micros);
@@ -236,11 +251,53 @@ fn record(h: &Mutex<Histogram<u64>>, value: u64) {
     }
 }
 
+/// The GPU phases of the answers whose prior ran there (`Timing.gpu`).
+struct GpuTally {
+    answers: AtomicU64,
+    /// Requests served by the dispatches of those answers, summed per answer.
+    dispatched: AtomicU64,
+    queue: Mutex<Histogram<u64>>,
+    /// Upload and dispatch.
+    submit: Mutex<Histogram<u64>>,
+    wait: Mutex<Histogram<u64>>,
+    copy: Mutex<Histogram<u64>>,
+}
+
+impl GpuTally {
+    fn record(&self, t: crate::proto::v1::GpuTiming) {
+        self.answers.fetch_add(1, Ordering::Relaxed);
+        self.dispatched.fetch_add(u64::from(t.batch), Ordering::Relaxed);
+        let micros = |v: f32| v.max(1.0) as u64;
+        record(&self.queue, micros(t.queue_us));
+        record(&self.submit, micros(t.upload_us + t.dispatch_us));
+        record(&self.wait, micros(t.wait_us));
+        record(&self.copy, micros(t.copy_us));
+    }
+
+    fn summary(&self) -> Result<Option<GpuSummary>, BenchError> {
+        let answers = self.answers.load(Ordering::Relaxed);
+        if answers == 0 {
+            return Ok(None);
+        }
+        let of = |h: &Mutex<Histogram<u64>>| Tally::snapshot(h).map(|h| Percentiles::of(&h));
+        Ok(Some(GpuSummary {
+            requests_per_dispatch: self.dispatched.load(Ordering::Relaxed) as f64 / answers as f64,
+            queue_us: of(&self.queue)?,
+            submit_us: of(&self.submit)?,
+            wait_us: of(&self.wait)?,
+            copy_us: of(&self.copy)?,
+        }))
+    }
+}
+
 /// The server's account of one answer (`Timing`).
 #[derive(Debug, Clone, Copy, Default)]
 struct ServerTime {
     total_us: f32,
     queue_us: f32,
+    prior_us: f32,
+    /// Where the prior's time went, when it ran on the GPU.
+    gpu: Option<crate::proto::v1::GpuTiming>,
 }
 
 impl ServerTime {
@@ -248,6 +305,8 @@ impl ServerTime {
         timing.map_or_else(Self::default, |t| Self {
             total_us: t.total_us,
             queue_us: t.queue_us,
+            prior_us: t.prior_us,
+            gpu: t.gpu,
         })
     }
 }
@@ -336,6 +395,8 @@ pub async fn run(config: &BenchConfig, progress: impl Fn(Progress)) -> Result<Re
     let refused = Tally::snapshot(&tally.refused)?;
     let server = Tally::snapshot(&tally.server)?;
     let queue = Tally::snapshot(&tally.queue)?;
+    let prior = Tally::snapshot(&tally.prior)?;
+
     let generator = Tally::snapshot(&tally.generator)?;
     let requests = latency.len();
     let usage_to = Usage::now();
@@ -370,6 +431,8 @@ pub async fn run(config: &BenchConfig, progress: impl Fn(Progress)) -> Result<Re
         refused_us: (!refused.is_empty()).then(|| Percentiles::of(&refused)),
         server_us: Percentiles::of(&server),
         server_queue_us: Percentiles::of(&queue),
+        server_prior_us: Percentiles::of(&prior),
+        gpu: tally.gpu.summary()?,
         generator_us: Percentiles::of(&generator),
         errors: tally.errors.lock().map(|e| e.clone()).unwrap_or_default(),
         intervals: tally.intervals(),

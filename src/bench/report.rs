@@ -66,6 +66,11 @@ pub struct Report {
     pub server_us: Percentiles,
     /// The part of it spent waiting for a compute thread (`Timing.queue_us`).
     pub server_queue_us: Percentiles,
+    /// The part of it spent evaluating the prior (`Timing.prior_us`).
+    pub server_prior_us: Percentiles,
+    /// Where the prior's time went for the answers whose prior ran on the GPU (`Timing.gpu`);
+    /// `None` when none ran there.
+    pub gpu: Option<GpuSummary>,
     /// How long after its due time each request was handed to the gRPC client: the load
     /// generator's own delay, which `latency_us` includes.
     pub generator_us: Percentiles,
@@ -79,6 +84,21 @@ pub struct Report {
     /// This process's CPU time (all threads, user and system) per request while measuring: what the
     /// load generator and its gRPC client cost; `None` where that is not known.
     pub client_cpu_us: Option<f64>,
+}
+
+/// The GPU phases of the prior over the answers evaluated there (server side, `Timing.gpu`).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct GpuSummary {
+    /// Requests that shared an answer's dispatch, on average over the answers.
+    pub requests_per_dispatch: f64,
+    /// Waiting for a dispatch to take the request.
+    pub queue_us: Percentiles,
+    /// Writing the dispatch's inputs and submitting it.
+    pub submit_us: Percentiles,
+    /// From submission until the field was in mapped host memory.
+    pub wait_us: Percentiles,
+    /// Copying the field into the answer.
+    pub copy_us: Percentiles,
 }
 
 impl Report {
@@ -117,6 +137,12 @@ impl Report {
         let client_cpu = self.client_cpu_us.map_or(String::new(), |us| {
             format!("\nclient CPU  {us:.0} µs per request (this process, user and system)")
         });
+        let gpu = self.gpu.as_ref().map_or(String::new(), |g| {
+            format!(
+                "\ngpu µs      p50 queue {:.0}  submit {:.0}  wait {:.0}  copy {:.0}  ({:.1} requests per dispatch)",
+                g.queue_us.p50, g.submit_us.p50, g.wait_us.p50, g.copy_us.p50, g.requests_per_dispatch
+            )
+        });
         let steal = self.steal_percent.map_or(String::new(), |p| {
             format!("\nhost        {p:.1} % of this machine's CPU time went to other guests (steal)")
         });
@@ -124,7 +150,7 @@ impl Report {
             "target      {}\nmodel       {} ({}, {} grasper(s), concurrency {}, offered {})\n\
              requests    {} in {:.1} s = {:.0}/s\n\
              latency µs  p50 {:.0}  p90 {:.0}  p99 {:.0}  p99.9 {:.0}  max {:.0}  mean {:.0}{split}{intervals}\n\
-             server µs   p50 {:.0}  p99 {:.0}  (waiting for a compute thread p50 {:.0})\n\
+             server µs   p50 {:.0}  p99 {:.0}  (prior p50 {:.0}; waiting for a compute thread p50 {:.0}){gpu}\n\
              generator   p50 {:.0}  p99 {:.0} µs after the due time\n\
              outside     p50 {:.0} µs: latency − server − generator (client and transport){client_cpu}\n\
              errors      {}{steal}",
@@ -145,6 +171,7 @@ impl Report {
             l.mean,
             s.p50,
             s.p99,
+            self.server_prior_us.p50,
             self.server_queue_us.p50,
             self.generator_us.p50,
             self.generator_us.p99,
