@@ -34,7 +34,7 @@ PAPER_MS = {"Kelvinlet": 0.15, "PointNet": 1.16, "SAB": 2.30, "GraphGPS": 2.60}
 
 
 def kelvinlet_torch(positions: Any, points: Any, displacements: Any, nu: float, eps: float, lam: float) -> Any:
-    """DESIGN.md §3 in PyTorch, the way a research code would write it: dense, vectorized, float32."""
+    """docs/design.md §3 in PyTorch, the way a research code would write it: dense, vectorized, float32."""
     import torch
 
     def bracket(r: Any) -> Any:

@@ -1,4 +1,4 @@
-//! A reduced basis Φ beside a graph whose output is `coefficients` g (DESIGN.md §7, `interaction`
+//! A reduced basis Φ beside a graph whose output is `coefficients` g (docs/design.md §7, `interaction`
 //! form): the network's field is Φ g, multiplied here rather than in ONNX Runtime.
 //!
 //! `basis.safetensors` holds one tensor `basis`, f32 or f16, shaped [N, 3, M] (node-major), and the
