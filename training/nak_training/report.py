@@ -1,4 +1,4 @@
-"""The results page (docs/models.md): every trained model's test-split DCM through nak in the layout of
+"""The results page (docs/reports/models.md): every trained model's test-split DCM through nak in the layout of
 the paper's Table 2, beside the paper's figures and the Kelvinlet and green-linear baselines, and nak's
 version of the paper's Fig. 2 (DCM against the engine's time per request) as a PNG.
 
