@@ -173,7 +173,7 @@ impl KelvinletModel {
 
 /// What ListModels says about the Kelvinlet's forces.
 const FORCE_ESTIMATE: &str = "estimate: the regularized Kelvinlets' point loads in an infinite medium \
-                              with the held node's shear modulus (README: Reaction forces)";
+                              with the held node's shear modulus (docs/api.md: Reaction forces)";
 
 /// Each node's shear modulus (Pa): the volume-weighted mean over its tetrahedra (the region's own
 /// inside a region). `None` when a region has no material.
