@@ -4,7 +4,7 @@ For each server (the `--before` binary, the `--after` one, and the `--after` one
 `--poll-idle-cpus`) a release `nak serve` on the embedded phantom is loaded in turn by `nak bench`
 (the after build's) and by the independent Python grpcio client (scripts/latency_client.py): unary at 1,000 requests/s open loop, closed loop on one connection, and
 a 1 kHz stream. The before build's own `nak bench` is also run against the after server, to show
-what the load generator itself adds. Results go to docs/latency.md and docs/latency/latency.png.
+what the load generator itself adds. Results go to docs/reports/latency.md and docs/reports/latency/latency.png.
 """
 
 from __future__ import annotations
@@ -486,7 +486,7 @@ def main() -> None:
     r = sub.add_parser("render")
     r.add_argument("--data", type=Path, default=ROOT / "target/latency-report")
     r.add_argument("--before-label", required=True)
-    r.add_argument("--out", type=Path, default=ROOT / "docs/latency.md")
+    r.add_argument("--out", type=Path, default=ROOT / "docs/reports/latency.md")
     args = parser.parse_args()
     if args.command == "measure":
         measure(args)

@@ -3,7 +3,7 @@
 torch   time the same Kelvinlet computation in PyTorch against a running nak server's mesh, and check
         that both give the same field
 render  turn the measurements (criterion estimates, `nak bench` reports, the PyTorch timing) into
-        docs/performance.md and its plots
+        docs/reports/performance.md and its plots
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ PAPER_MS = {"Kelvinlet": 0.15, "PointNet": 1.16, "SAB": 2.30, "GraphGPS": 2.60}
 
 
 def kelvinlet_torch(positions: Any, points: Any, displacements: Any, nu: float, eps: float, lam: float) -> Any:
-    """DESIGN.md §3 in PyTorch, the way a research code would write it: dense, vectorized, float32."""
+    """docs/design.md §3 in PyTorch, the way a research code would write it: dense, vectorized, float32."""
     import torch
 
     def bracket(r: Any) -> Any:
@@ -290,7 +290,7 @@ def main() -> None:
     t.add_argument("--repeats", type=int, default=50)
     r = sub.add_parser("render")
     r.add_argument("--data", type=Path, required=True)
-    r.add_argument("--out", type=Path, default=ROOT / "docs" / "performance.md")
+    r.add_argument("--out", type=Path, default=ROOT / "docs" / "reports" / "performance.md")
     args = parser.parse_args()
     if args.command == "torch":
         torch_reference(args.target, args.out, args.repeats)

@@ -6,7 +6,7 @@ overload  measure capacity (closed loop), then offer twice that in an open loop 
           at p99, refusals within 1 ms, memory bounded, the server alive afterwards?
 soak      ten minutes of four 1 kHz streams plus unary traffic: does the server's memory stay flat
           after warm-up, and the last minute's p99 within 1.5x the first's?
-render    docs/reliability.md and its plots from the JSON the two runs wrote
+render    docs/reports/reliability.md and its plots from the JSON the two runs wrote
 
 `scripts/reliability` builds the release binary and runs all three. Each run writes
 target/reliability/<run>.json; nothing here asserts, the page states what was measured.
@@ -35,7 +35,7 @@ import local_server  # noqa: E402
 ROOT = Path(__file__).resolve().parent.parent
 NAK = ROOT / "target" / "release" / "nak"
 DATA = ROOT / "target" / "reliability"
-DOCS = ROOT / "docs"
+DOCS = ROOT / "docs" / "reports"
 DEFAULT_NICENESS = 5  # nak serve's --compute-niceness default
 
 

@@ -3,7 +3,7 @@
 //! An answer crosses CPUs twice: the request wakes a server thread, the answer wakes the client.
 //! When the CPU it wakes on has halted, the wake-up costs what halting costs to leave: in a virtual
 //! machine with guest halt-polling off, an exit to the hypervisor and back, tens of microseconds
-//! (docs/latency.md measures it with a pipe round trip across CPUs and on one). Linux's CPU latency QoS lets a process ask that no CPU take longer than a bound to
+//! (docs/reports/latency.md measures it with a pipe round trip across CPUs and on one). Linux's CPU latency QoS lets a process ask that no CPU take longer than a bound to
 //! wake; a bound of 0 leaves the cpuidle governors only their polling state, so an idle CPU spins
 //! and a wake-up costs what a context switch does. The price is an idle CPU at full power: opt in
 //! (`nak serve --poll-idle-cpus`) on machines that serve latency-critical clients.

@@ -11,7 +11,7 @@ fn coarse() -> TetMesh {
     mesh::load(&MeshSource::File(path)).unwrap()
 }
 
-/// DESIGN.md §3 written out directly in f64: the bracket, the normal equations, the sum.
+/// docs/design.md §3 written out directly in f64: the bracket, the normal equations, the sum.
 fn reference_field(params: PriorParams, points: &InteractionPoints, at: &[[f64; 3]]) -> Vec<[f64; 3]> {
     let (nu, eps, lambda) = (params.poisson_ratio, params.epsilon, params.lambda);
     let gamma = |x: Vector3<f64>, xs: Vector3<f64>| -> Matrix3<f64> {

@@ -1,4 +1,4 @@
-//! Models of the `interaction` form (DESIGN.md §7): the graph reads only the K interaction points and
+//! Models of the `interaction` form (docs/design.md §7): the graph reads only the K interaction points and
 //! gives the field, or coefficients of a basis beside it that nak multiplies. The three coarse test
 //! models share one encoder and one basis: nak's product (f32 and f16 storage) is checked against ONNX
 //! Runtime's own MatMul over the same basis folded into the graph.

@@ -13,7 +13,7 @@ Boundary-condition patches are imprinted on the surface by fragmenting with smal
 is its own geometric surface and can carry a physical group: ``fixed`` (bare area + distal duct end) and
 ``grasp_01`` ... ``grasp_10`` (clusters along the ridge).
 
-Run ``python models/phantom-liver/generate.py`` (see README) to rewrite liver.msh, liver-coarse.msh and
+Run ``python models/phantom-liver/generate.py`` (see docs/meshes.md) to rewrite liver.msh, liver-coarse.msh and
 phantom-liver.png. Meshing is single-threaded with a fixed seed, so the output is deterministic.
 """
 

@@ -52,9 +52,9 @@ pub struct DatagenArgs {
 
 #[derive(Clone, Copy, clap::ValueEnum)]
 enum Regime {
-    /// Small-strain linear elasticity (DESIGN.md §4).
+    /// Small-strain linear elasticity (docs/design.md §4).
     Linear,
-    /// Compressible Mooney–Rivlin from the gravity-preloaded state (DESIGN.md §4).
+    /// Compressible Mooney–Rivlin from the gravity-preloaded state (docs/design.md §4).
     Nonlinear,
 }
 

@@ -226,7 +226,7 @@ pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
             );
         }
     }
-    println!("  (DCM: volume-weighted, DESIGN.md §6; code: the paper's code form, comparable with its tables)");
+    println!("  (DCM: volume-weighted, docs/design.md §6; code: the paper's code form, comparable with its tables)");
     let forces: BTreeMap<String, ForceSummary> = force_errors
         .iter()
         .filter_map(|(k, v)| force_error::summarize(v).map(|s| (k.clone(), s)))

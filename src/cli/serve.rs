@@ -77,7 +77,7 @@ pub struct ServeArgs {
     compute_niceness: Option<i32>,
     /// Keep idle CPUs polling instead of halting while the server runs (a CPU latency QoS request of
     /// 0 µs through /dev/cpu_dma_latency; needs root): a request or answer that wakes an idle CPU
-    /// then waits microseconds instead of tens, and idle CPUs run at full power. docs/latency.md
+    /// then waits microseconds instead of tens, and idle CPUs run at full power. docs/reports/latency.md
     /// measures both.
     #[arg(long)]
     poll_idle_cpus: bool,

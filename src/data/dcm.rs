@@ -1,4 +1,4 @@
-//! The paper's DCM metric (DESIGN.md §6): `100 · (1 − E[‖u_true − û‖ / ‖u_true‖])` with the L2(Ω)
+//! The paper's DCM metric (docs/design.md §6): `100 · (1 − E[‖u_true − û‖ / ‖u_true‖])` with the L2(Ω)
 //! norm approximated by lumped nodal volumes, its unweighted nodal variant, and the form the paper's
 //! public code computes (and its tables report): per sample and axis the norms over nodes of error and
 //! truth, `100 · (1 − mean ‖e_c‖ / mean ‖u_c‖)`, a ratio of means over the whole split.

@@ -1,4 +1,4 @@
-//! The paper's grasp distribution p (DESIGN.md §5), reproducible sample by sample from (seed, index).
+//! The paper's grasp distribution p (docs/design.md §5), reproducible sample by sample from (seed, index).
 //!
 //! A grasper picks a region Ω_i with probability g(Ω_i), a surface node of that region with a
 //! Gaussian radial density around the region's centre (spread: the region's RMS radius), and holds it

@@ -93,7 +93,7 @@ pub struct Timing {
 }
 
 /// The default [`Limits::quick_terms`]: about 150 µs of field on one core of the machine in
-/// docs/latency.md, the phantom (9,701 nodes) with up to 54 interaction points.
+/// docs/reports/latency.md, the phantom (9,701 nodes) with up to 54 interaction points.
 pub const QUICK_TERMS: usize = 1 << 19;
 
 /// A request checked and with its grasps resolved, ready for [`Engine::compute`] on any thread.

@@ -127,7 +127,7 @@ impl KelvinletModel {
             ("lambda".to_owned(), p.lambda.to_string()),
             (
                 "description".to_owned(),
-                "rescaled regularized Kelvinlet (DESIGN.md §3), closed-form multi-point solve".to_owned(),
+                "rescaled regularized Kelvinlet (docs/design.md §3), closed-form multi-point solve".to_owned(),
             ),
         ]);
         let forces = match &load_per_coefficient {
@@ -159,7 +159,7 @@ impl KelvinletModel {
 
     /// The point load of each solved Kelvinlet: de Goes and James's regularized Kelvinlet for a load
     /// `f` is `u = [(a−b)/r_ε I + b/r_ε³ r rᵀ + (a/2) ε²/r_ε³ I] f` with `a = 1/(4πμ)`, `b = a/(4(1−ν))`,
-    /// which is `1/(16πμ(1−ν))` times DESIGN §3's bracket; the served field is that bracket times the
+    /// which is `1/(16πμ(1−ν))` times docs/design.md §3's bracket; the served field is that bracket times the
     /// coefficient `s·k`, so `f = 16πμ(1−ν) · s·k`, with μ at the held node.
     pub fn point_loads(&self, points: &InteractionPoints, coefficients: &Coefficients, forces: &mut Vec<[f64; 3]>) {
         let Some(stiffness) = &self.load_per_coefficient else {
@@ -175,7 +175,7 @@ impl KelvinletModel {
 
 /// What ListModels says about the Kelvinlet's forces.
 const FORCE_ESTIMATE: &str = "estimate: the regularized Kelvinlets' point loads in an infinite medium \
-                              with the held node's shear modulus (README: Reaction forces)";
+                              with the held node's shear modulus (docs/api.md: Reaction forces)";
 
 /// Each node's shear modulus (Pa): the volume-weighted mean over its tetrahedra (the region's own
 /// inside a region). `None` when a region has no material.

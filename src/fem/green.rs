@@ -1,4 +1,4 @@
-//! Exact real-time linear models through Green's functions (DESIGN.md §4; James & Pai's capacitance
+//! Exact real-time linear models through Green's functions (docs/design.md §4; James & Pai's capacitance
 //! matrix): `green-linear`, small-strain elasticity at the reference configuration, and
 //! `green-tangent`, the hyperelastic model linearized about its gravity-preloaded equilibrium (the
 //! exact answer of the nonlinear regime for small grasps).

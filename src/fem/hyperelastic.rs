@@ -1,4 +1,4 @@
-//! Compressible Mooney–Rivlin (DESIGN.md §4):
+//! Compressible Mooney–Rivlin (docs/design.md §4):
 //! `W = C10(Ī1 − 3) + C01(Ī2 − 3) + (κ/2)(J − 1)²`, `Ī1 = J^{-2/3} I1`, `Ī2 = J^{-4/3} I2`,
 //! with the first Piola–Kirchhoff stress `P = ∂W/∂F` and the tangent `A = ∂²W/∂F∂F` in closed form.
 //!
@@ -19,7 +19,7 @@ pub struct MooneyRivlin {
 pub type Tangent = [[f64; 9]; 9];
 
 impl MooneyRivlin {
-    /// κ from Poisson's ratio and the initial shear modulus μ0 = 2(C10 + C01), as DESIGN.md §4 fixes.
+    /// κ from Poisson's ratio and the initial shear modulus μ0 = 2(C10 + C01), as docs/design.md §4 fixes.
     pub fn new(c10: f64, c01: f64, poisson_ratio: f64) -> Self {
         let mu0 = 2.0 * (c10 + c01);
         let kappa = 2.0 * mu0 * (1.0 + poisson_ratio) / (3.0 * (1.0 - 2.0 * poisson_ratio));

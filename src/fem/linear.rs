@@ -1,4 +1,4 @@
-//! Small-strain isotropic linear elasticity on P1 tetrahedra (DESIGN.md §4): sparse assembly with
+//! Small-strain isotropic linear elasticity on P1 tetrahedra (docs/design.md §4): sparse assembly with
 //! faer, `fixed` nodes eliminated, sparse Cholesky factorized once and reused.
 
 use faer::linalg::solvers::Solve;

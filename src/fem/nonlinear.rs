@@ -1,4 +1,4 @@
-//! Total-Lagrangian P1 finite elements with compressible Mooney–Rivlin (DESIGN.md §4), solved by
+//! Total-Lagrangian P1 finite elements with compressible Mooney–Rivlin (docs/design.md §4), solved by
 //! Newton–Raphson with the consistent tangent, a backtracking line search on the potential energy and
 //! adaptive load stepping.
 //!

@@ -1,4 +1,4 @@
-//! The gravity-preloaded equilibrium (DESIGN.md §4): solved once per mesh and materials, cached, and
+//! The gravity-preloaded equilibrium (docs/design.md §4): solved once per mesh and materials, cached, and
 //! the state every nonlinear grasp starts from; grasp displacements are reported relative to it.
 
 use std::path::{Path, PathBuf};

@@ -8,7 +8,7 @@ use serde::Deserialize;
 
 use super::MeshError;
 
-/// Regularized Kelvinlet parameters (DESIGN.md §3).
+/// Regularized Kelvinlet parameters (docs/design.md §3).
 #[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct PriorParams {
@@ -53,7 +53,7 @@ pub struct GraspRegion {
     pub weight: f64,
 }
 
-/// Parameters of the training distribution p (DESIGN.md §5), in SI units.
+/// Parameters of the training distribution p (docs/design.md §5), in SI units.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Sampling {
     pub displacement_min: [f64; 3],

@@ -173,7 +173,7 @@ pub fn triangle_area_vector(t: &[u32; 3], positions: &[Vec3]) -> Vec3 {
     cross(sub(b, a), sub(c, a))
 }
 
-/// Lumped nodal volumes: a quarter of each adjacent tetrahedron's volume (DESIGN.md §6).
+/// Lumped nodal volumes: a quarter of each adjacent tetrahedron's volume (docs/design.md §6).
 pub fn lumped_volumes(tets: &[[u32; 4]], volumes: &[f64], node_count: usize) -> Vec<f64> {
     let mut lumped = vec![0.0; node_count];
     for (tet, v) in tets.iter().zip(volumes) {

@@ -1,11 +1,11 @@
-//! A reduced basis Φ beside a graph whose output is `coefficients` g (DESIGN.md §7, `interaction`
+//! A reduced basis Φ beside a graph whose output is `coefficients` g (docs/design.md §7, `interaction`
 //! form): the network's field is Φ g, multiplied here rather than in ONNX Runtime.
 //!
 //! `basis.safetensors` holds one tensor `basis`, f32 or f16, shaped [N, 3, M] (node-major), and the
 //! metadata key `mesh_hash`, the content hash of the mesh it was made on. In memory the values are
 //! rearranged into tiles (see [`TILE`]). The product streams the whole basis per request at the
 //! speed the caches deliver it, so f16, half the bytes, is the faster where the CPU widens it in
-//! hardware (F16C: 44 µs against 67 µs for f32 at M = 64 on the phantom; README, Performance).
+//! hardware (F16C: 44 µs against 67 µs for f32 at M = 64 on the phantom; docs/training.md).
 //! Accumulation is f32 either way.
 
 use multiversion::multiversion;

@@ -1,4 +1,4 @@
-//! `manifest.toml`: what a model directory says about its network (DESIGN.md §7).
+//! `manifest.toml`: what a model directory says about its network (docs/design.md §7).
 
 use std::collections::BTreeMap;
 
@@ -12,7 +12,7 @@ use crate::mesh::{PriorParams, TetMesh};
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum PriorModel {
-    /// The regularized Kelvinlet with the manifest's parameters (DESIGN.md §3).
+    /// The regularized Kelvinlet with the manifest's parameters (docs/design.md §3).
     #[default]
     Kelvinlet,
     /// The exact linear FEM answer (green-linear); the Kelvinlet parameters are then unused.
@@ -76,7 +76,7 @@ impl Method {
 }
 
 /// Input channel groups, in the order they appear in `features`; or `interaction`, the K interaction
-/// points alone (rest position and prescribed displacement, DESIGN.md §7).
+/// points alone (rest position and prescribed displacement, docs/design.md §7).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Channel {

@@ -1,4 +1,4 @@
-//! ONNX-exported networks under the model contract (DESIGN.md §7): manifests, discovery and serving.
+//! ONNX-exported networks under the model contract (docs/design.md §7): manifests, discovery and serving.
 
 pub mod basis;
 pub mod manifest;

@@ -1,4 +1,4 @@
-//! A network served through ONNX Runtime under the model contract (DESIGN.md §7), in either form:
+//! A network served through ONNX Runtime under the model contract (docs/design.md §7), in either form:
 //! `features` over every node, or `interaction` over the K interaction points alone (whose output is
 //! the field itself or the coefficients of a [`Basis`] beside the graph).
 
@@ -593,7 +593,7 @@ impl OnnxModel {
 
     /// The interaction form with Φ on the GPU: the network gives g on the CPU, then one dispatch
     /// evaluates prior and residual together over resident cloud `cloud`, `Σ_j Γ_j k_j + Φ g`
-    /// (DESIGN.md §7). `prior_us` is the solve and that dispatch; `network_us` the encoder.
+    /// (docs/design.md §7). `prior_us` is the solve and that dispatch; `network_us` the encoder.
     fn predict_on_gpu(
         &self,
         points: &InteractionPoints,

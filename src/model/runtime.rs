@@ -1,4 +1,4 @@
-//! Loading ONNX Runtime itself: the shared library from the PyPI wheel (DESIGN.md §9), located by
+//! Loading ONNX Runtime itself: the shared library from the PyPI wheel (docs/design.md §9), located by
 //! `--ort-dylib`, `ORT_DYLIB_PATH`, or in the `.venv` of the working directory (where
 //! scripts/setup-python puts the wheel when run from a checkout), and loaded once per process.
 

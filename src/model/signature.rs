@@ -1,4 +1,4 @@
-//! What a graph takes and gives under the model contract (DESIGN.md §7), read from its declared
+//! What a graph takes and gives under the model contract (docs/design.md §7), read from its declared
 //! inputs and outputs so that a wrong graph is refused at load with a message naming the tensor.
 
 use ort::session::Session;

@@ -12,7 +12,7 @@ use tower::util::MapRequestLayer;
 
 /// Requests admitted per compute thread by default. Each waits behind at most this many others per
 /// core: the Kelvinlet prior on the phantom costs ~0.2 ms, so an admitted request waits ~1 ms at
-/// most (README, API: admission control).
+/// most (docs/operations.md, admission control).
 pub const PER_THREAD: usize = 4;
 
 /// How much before a call's deadline nak gives up on it, at most (see [`deadline`]).

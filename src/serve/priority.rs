@@ -1,7 +1,7 @@
 //! Who gets a core first when the cores are saturated: the async runtime, which reads requests,
 //! refuses what admission control turns away and answers health checks, before the compute pool,
 //! whose work is already admitted. Without it a refusal waits behind computations (milliseconds at
-//! overload; docs/reliability.md measures both).
+//! overload; docs/reports/reliability.md measures both).
 
 /// The compute threads' default niceness: enough that the kernel's scheduler runs the async runtime
 /// first whenever both want a core.

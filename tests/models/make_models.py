@@ -1,6 +1,6 @@
 """Write the small ONNX test models (fixed, seeded weights) that exercise nak's model contract.
 
-DESIGN.md §7: input `features` f32 [B, N, C] with channels position (3), prescribed displacement (3),
+docs/design.md §7: input `features` f32 [B, N, C] with channels position (3), prescribed displacement (3),
 active flag (1) and, if the manifest lists it, the prior (3); output `displacement` f32 [B, N, 3];
 normalization inside the graph. The weights are random, not trained: these models test the serving
 machinery, not accuracy.
@@ -154,7 +154,7 @@ def write_reduced(
     modes: int = REDUCED_MODES,
     width: int = 6,
 ) -> None:
-    """A model of the interaction form (DESIGN.md §7); `basis` (default: a random one) goes in the graph
+    """A model of the interaction form (docs/design.md §7); `basis` (default: a random one) goes in the graph
     (`folded`) or beside it."""
     g = GraphBuilder(seed)
     coefficients = set_encoder(g, modes, width)

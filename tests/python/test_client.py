@@ -1,4 +1,4 @@
-"""The README's Python client runs against a real `nak serve`."""
+"""The example Python client (examples/client.py, as in the README) runs against a real `nak serve`."""
 
 from __future__ import annotations
 

@@ -3,7 +3,7 @@
 A drag on the organ must deform it on screen (pixels change where the organ is) and fill the latency
 readout; the rates of answers and of frames showing a new deformation during a drag are measured and printed (a figure, not a pass mark: speed is
 measured by commands, not asserted by tests). NAK_VIEWER_SCREENSHOT=PATH keeps the screenshot after
-the drags (the README's picture: scripts/viewer-screenshot)."""
+the drags (the picture in docs/viewer.md: scripts/viewer-screenshot)."""
 
 from __future__ import annotations
 

@@ -52,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     report.add_argument("--models", type=Path, nargs="+", default=[DEFAULT_MODELS], help="model directories")
     report.add_argument("--nak", type=Path, default=DEFAULT_NAK)
     report.add_argument("--mesh", type=Path, default=DEFAULT_MESH)
-    report.add_argument("--out", type=Path, default=Path("docs/models"))
+    report.add_argument("--out", type=Path, default=Path("docs/reports/models"))
     failures = commands.add_parser("failures", help="a nonlinear dataset's failure rate by the grasps' inward push")
     failures.add_argument("--data", type=Path, required=True, help="a nonlinear dataset made by nak datagen")
     args = parser.parse_args(argv)

@@ -41,7 +41,7 @@ class TrainConfig:
     query_nodes: int = 1024
     lr: float = 2e-3
     weight_decay: float = 5e-5
-    # Kelvinlet regularization (method reg): weight and q samples per step (DESIGN.md §5).
+    # Kelvinlet regularization (method reg): weight and q samples per step (docs/design.md §5).
     lambda_reg: float = 1.0
     q_batch: int = 8
     val_every: int = 250

@@ -1,4 +1,4 @@
-"""Export a trained network to a nak model directory (DESIGN.md §7): `model.onnx`, `manifest.toml` and
+"""Export a trained network to a nak model directory (docs/design.md §7): `model.onnx`, `manifest.toml` and
 the `config.toml` it was trained with. The graph is checked against PyTorch with onnxruntime before the
 manifest is written, so a directory with a manifest always holds a graph that computes the network.
 """

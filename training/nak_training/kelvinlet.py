@@ -1,4 +1,4 @@
-"""The regularized Kelvinlet prior exactly as nak serves it (DESIGN.md §3; src/prior), batched in torch.
+"""The regularized Kelvinlet prior exactly as nak serves it (docs/design.md §3; src/prior), batched in torch.
 
 `Γ(r) = s · [(a/r_ε + b/r_ε³) I + r rᵀ/r_ε³]`, s = ε/(5−6ν), a = 3−4ν, b = 2(1−ν)ε², so Γ(0) = I.
 Coefficients solve `(ΓᵀΓ + λI) k = Γᵀu` (a single point takes k = u, as nak does); the field is

@@ -6,7 +6,7 @@ Every network is `decode(encode(f).local, pool(encode(f).pool_in))`: a per-node 
 over all nodes, and a per-node decoder that reads its node's encoding and the pooled summary. When the
 encoder looks at one node at a time (`row_wise`), training can exploit that a node nobody grasps has
 the same input `[x, 0, 0]` in every sample (see `forward_split`). Inputs are raw SI features
-`[x (3), u_s (3), a (1)]` (DESIGN.md §7); normalization is part of the module and of the exported graph.
+`[x (3), u_s (3), a (1)]` (docs/design.md §7); normalization is part of the module and of the exported graph.
 """
 
 from __future__ import annotations
@@ -174,7 +174,7 @@ class FeatureTransform(nn.Module):
 
 
 class PointNet(SetNet):
-    """Per-node MLP, global max-pool, and a head over [node feature, global feature] (DESIGN.md §10)."""
+    """Per-node MLP, global max-pool, and a head over [node feature, global feature] (docs/design.md §10)."""
 
     def __init__(self, size: str) -> None:
         super().__init__()

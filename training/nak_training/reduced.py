@@ -1,9 +1,9 @@
-"""Reduced-basis networks (DESIGN.md §7, the `interaction` form): a set encoder over the K interaction
+"""Reduced-basis networks (docs/design.md §7, the `interaction` form): a set encoder over the K interaction
 points gives M coefficients g, and the field is Φ g for a basis Φ [N, 3, M] that depends on the mesh
 alone. Per request the work scales with K (and the M-term product), not with a network over N nodes.
 
 * POD: Φ is the proper orthogonal decomposition of the training targets in L2(Ω) (lumped volumes V,
-  DESIGN.md §6), so Φᵀ V Φ = I and ‖Φ g − r‖²_V = ‖g − Φᵀ V r‖² + ‖r − Φ Φᵀ V r‖²_V: the model is
+  docs/design.md §6), so Φᵀ V Φ = I and ‖Φ g − r‖²_V = ‖g − Φᵀ V r‖² + ‖r − Φ Φᵀ V r‖²_V: the model is
   trained in coefficient space and its DCM on the training targets is exact without touching a node.
 * DeepONet: Φ(x) is a trunk MLP over node positions, learned with the encoder (the branch); it is
   evaluated over the mesh's nodes once, at export (a basis file) or by ONNX Runtime's constant folding

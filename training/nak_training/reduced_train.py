@@ -1,6 +1,6 @@
 """Training reduced-basis networks (POD, DeepONet; see reduced.py) as Base, +Res or +Reg.
 
-The loss is the DCM's own per-sample error, ‖u_true − û‖_{L2(Ω)} / ‖u_true‖_{L2(Ω)} (DESIGN.md §6),
+The loss is the DCM's own per-sample error, ‖u_true − û‖_{L2(Ω)} / ‖u_true‖_{L2(Ω)} (docs/design.md §6),
 averaged over the batch. For a POD it is exact in coefficient space; a DeepONet's is estimated on
 `query_nodes` nodes drawn per step. +Reg adds λ_reg × the same relative misfit to the Kelvinlet field
 of fresh q samples, whose projection onto the basis (POD) costs one field over the mesh per sample.

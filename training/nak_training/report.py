@@ -1,4 +1,4 @@
-"""The results page (docs/models.md): every trained model's test-split DCM through nak in the layout of
+"""The results page (docs/reports/models.md): every trained model's test-split DCM through nak in the layout of
 the paper's Table 2, beside the paper's figures and the Kelvinlet and green-linear baselines, and nak's
 version of the paper's Fig. 2 (DCM against the engine's time per request) as a PNG.
 
@@ -395,7 +395,7 @@ def write_report(
         "",
         *table(entries, "dcm_code", linear, with_paper=True),
         "",
-        "## Linear regime: DCM as DESIGN.md §6 defines it (volume-weighted mean of relative errors)",
+        "## Linear regime: DCM as docs/design.md §6 defines it (volume-weighted mean of relative errors)",
         "",
         *table(entries, "dcm", linear, with_paper=False),
         "",
@@ -408,7 +408,7 @@ def write_report(
             "",
             *table(entries, "dcm_code", nonlinear, with_paper=True, regime="nonlinear"),
             "",
-            "## Nonlinear regime: DCM as DESIGN.md §6 defines it",
+            "## Nonlinear regime: DCM as docs/design.md §6 defines it",
             "",
             *table(entries, "dcm", nonlinear, with_paper=False, regime="nonlinear"),
             "",

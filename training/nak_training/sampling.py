@@ -1,4 +1,4 @@
-"""The Kelvinlet-regularization distribution q (DESIGN.md §5), as in the paper's public training code.
+"""The Kelvinlet-regularization distribution q (docs/design.md §5), as in the paper's public training code.
 
 A surface node drawn uniformly plus its 3–7 nearest surface neighbours (the mesh's grasp neighbour
 range), all moved by one displacement: direction uniform in a cone of half-angle 30° around their mean

@@ -1,7 +1,7 @@
 """Training: Base, +Res (Method 1) and +Reg (Method 2) on a nak dataset, seeded and resumable.
 
 Per step a batch of samples from p is drawn from the train split; the loss is the L2(Ω) misfit
-(lumped nodal volumes, DESIGN.md §6) on `query_nodes` nodes drawn uniformly, in normalized output
+(lumped nodal volumes, docs/design.md §6) on `query_nodes` nodes drawn uniformly, in normalized output
 units. +Res learns u_true − prior; +Reg adds λ_reg × the misfit to the Kelvinlet field on fresh
 q samples. Row-wise networks run their encoder over the nodes at rest once per step
 (`SetNet.forward_split`), so a step costs O(N + B·(K + Q)) rather than O(B·N). Model selection is on
@@ -55,7 +55,7 @@ def prior_fields(prior: Prior, mesh: Mesh, split: Split, batch: int = 16) -> tor
 
 
 def relative_errors(truth: torch.Tensor, estimate: torch.Tensor, volumes: torch.Tensor) -> torch.Tensor:
-    """‖u_true − û‖_{L2(Ω)} / ‖u_true‖_{L2(Ω)} per sample (DESIGN.md §6), truth/estimate [S, N, 3]."""
+    """‖u_true − û‖_{L2(Ω)} / ‖u_true‖_{L2(Ω)} per sample (docs/design.md §6), truth/estimate [S, N, 3]."""
     v = volumes.to(torch.float64)
     err = ((truth.double() - estimate.double()) ** 2).sum(-1) @ v
     norm = (truth.double() ** 2).sum(-1) @ v

@@ -77,7 +77,7 @@ function multiply(a, b) {
 
 // ---- camera ------------------------------------------------------------------------------------
 
-// Orbits `target` at `distance`; y is up (gravity points along −y, DESIGN.md).
+// Orbits `target` at `distance`; y is up (gravity points along −y, docs/design.md §2).
 export class OrbitCamera {
   constructor(target, radius) {
     this.target = target;
