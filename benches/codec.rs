@@ -5,7 +5,7 @@
 use bytes::BytesMut;
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use nak::proto::v1::{Grasp, PredictRequest, PredictResponse, Timing, Vec3};
-use nak::serve::f32_bytes;
+use nak::wire::f32_bytes;
 use prost::Message;
 
 fn codec(c: &mut Criterion) {

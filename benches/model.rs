@@ -9,8 +9,9 @@ use std::sync::Arc;
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use nak::engine::{DeformationModel, Engine, Grasp, Limits, Request};
-use nak::fem::{GreenFunctions, GreenModel, Stiffness};
+use nak::fem::{GreenFunctions, Stiffness};
 use nak::mesh::{self, MeshSource};
+use nak::model::GreenModel;
 
 const SHIPPED_REDUCED: [&str; 4] = ["pod-res-fast", "pod-res-lean", "pod-res-big", "pod-res"];
 const TEST_MODELS: [&str; 4] = [

@@ -10,8 +10,9 @@ use std::sync::{Arc, OnceLock};
 
 use arbitrary::{Arbitrary, Unstructured};
 use nak::engine::{Engine, Limits};
-use nak::fem::{GreenFunctions, GreenModel, Stiffness};
+use nak::fem::{GreenFunctions, Stiffness};
 use nak::mesh::{MeshConfig, TetMesh};
+use nak::model::GreenModel;
 use nak::model::Manifest;
 use nak::proto::v1 as pb;
 
@@ -162,7 +163,7 @@ pub fn request(data: &[u8]) -> bool {
         return false;
     };
     let message = fuzzed.message();
-    let Ok(request) = nak::serve::convert::request(&message) else {
+    let Ok(request) = nak::wire::convert::request(&message) else {
         return false;
     };
     let Ok(prediction) = engine().predict(&request) else {

@@ -11,7 +11,8 @@
 //!    `kelvinlet` model.
 //! 4. Above the engine: [`model`] (ONNX networks and the exact linear models) and [`data`] (the
 //!    distribution p, datasets, ground truth, DCM).
-//! 5. The wire codec between messages and values, shared by everything that speaks gRPC.
+//! 5. [`wire`]: the codec between messages and values, and the PEM and token files, shared by
+//!    everything that speaks gRPC.
 //! 6. [`record`] (MCAP) and [`client`] (nak's gRPC client).
 //! 7. [`serve`] (the gRPC service) and [`bench`] (the load tester).
 //! 8. The command line (`src/cli`, `src/main.rs`), over all of them.
@@ -28,3 +29,4 @@ pub mod prior;
 pub mod proto;
 pub mod record;
 pub mod serve;
+pub mod wire;

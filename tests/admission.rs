@@ -13,7 +13,8 @@ use common::models::{coarse, two_graspers};
 use common::server::TestServer;
 use nak::engine::{Engine, Limits};
 use nak::proto::v1 as pb;
-use nak::serve::{Intake, grasp_message};
+use nak::serve::Intake;
+use nak::wire::grasp_message;
 use tonic::Code;
 
 /// Occupies every thread of rayon's global pool until dropped.

@@ -24,7 +24,7 @@ use tonic::transport::Channel;
 fn request(model: &str) -> pb::PredictRequest {
     pb::PredictRequest {
         model: model.into(),
-        grasps: two_graspers(&coarse()).iter().map(nak::serve::grasp_message).collect(),
+        grasps: two_graspers(&coarse()).iter().map(nak::wire::grasp_message).collect(),
         ..Default::default()
     }
 }

@@ -173,7 +173,9 @@ fn green_linear_equals_a_direct_solve_moves_grasped_nodes_exactly_and_gives_its_
     }
     let mut served = vec![0.0f32; 3 * m.node_count()];
     let mut forces = Vec::new();
-    green.solve(&points, None, &mut served, &mut forces).unwrap();
+    green
+        .solve(&points.nodes, &points.displacements, None, &mut served, &mut forces)
+        .unwrap();
     let prescribed: Vec<(u32, [f64; 3])> = points
         .nodes
         .iter()

@@ -9,9 +9,10 @@ use common::models::{coarse, engine_with_models, two_graspers};
 use common::server::TestServer;
 use nak::data::dataset;
 use nak::engine::Grasp;
-use nak::fem::{GreenFunctions, GreenModel, Stiffness, nodal_forces, solve_dirichlet};
+use nak::fem::{GreenFunctions, Stiffness, nodal_forces, solve_dirichlet};
+use nak::model::GreenModel;
 use nak::proto::v1 as pb;
-use nak::serve::grasp_message;
+use nak::wire::grasp_message;
 
 /// Each grasp's total of the direct FEM solve's K·u at its held nodes.
 fn fem_grasp_forces(mesh: &nak::mesh::TetMesh, grasps: &[Grasp]) -> Vec<[f64; 3]> {

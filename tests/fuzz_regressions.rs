@@ -75,7 +75,7 @@ fn recording() -> Vec<u8> {
     let recorder = Recorder::start(RecordConfig::new(dir.path().into()), mesh, BTreeMap::new()).unwrap();
     let request = pb::PredictRequest {
         model: "kelvinlet".into(),
-        grasps: vec![nak::serve::grasp_message(&nak::engine::Grasp {
+        grasps: vec![nak::wire::grasp_message(&nak::engine::Grasp {
             nodes: vec![1, 2, 3],
             displacement: [0.01, 0.0, -0.01],
             ..Default::default()
@@ -85,7 +85,7 @@ fn recording() -> Vec<u8> {
     let answer = pb::PredictResponse {
         node_count: 2,
         node_ids: vec![1, 2],
-        displacements: nak::serve::f32_bytes(vec![0.01, 0.0, -0.01, 0.005, 0.0, 0.0]),
+        displacements: nak::wire::f32_bytes(vec![0.01, 0.0, -0.01, 0.005, 0.0, 0.0]),
         ..Default::default()
     };
     for response in [

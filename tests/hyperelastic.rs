@@ -406,7 +406,9 @@ fn green_tangent_is_the_nonlinear_answer_to_first_order() {
             points.push(n, m.positions[n as usize], u);
         }
         let mut out = vec![0.0f32; 3 * m.node_count()];
-        green.solve(&points, None, &mut out, &mut Vec::new()).unwrap();
+        green
+            .solve(&points.nodes, &points.displacements, None, &mut out, &mut Vec::new())
+            .unwrap();
         out.chunks(3)
             .map(|c| [c[0], c[1], c[2]].map(f64::from))
             .collect::<Vec<_>>()

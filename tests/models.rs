@@ -10,8 +10,9 @@ use common::models::{coarse, copy_model, engine_with_models, load_error, ort, pr
 use common::server::TestServer;
 use nak::engine::DeformationModel;
 use nak::engine::{Engine, Grasp, Limits, Request, Selection};
-use nak::fem::{GreenFunctions, GreenModel, Stiffness};
+use nak::fem::{GreenFunctions, Stiffness};
 use nak::mesh::PriorParams;
+use nak::model::GreenModel;
 use nak::model::{self, LoadContext, OnnxModel};
 use nak::prior::{InteractionPoints, Kelvinlet, NodeCloud, Workspace};
 use nak::proto::v1 as pb;
@@ -280,7 +281,7 @@ async fn a_model_failing_at_run_time_answers_internal_and_the_server_goes_on() {
     }
     let server = TestServer::with_engine(engine, 1 << 20).await;
     let mut client = server.client().await;
-    let grasps: Vec<pb::Grasp> = two_graspers(&mesh).iter().map(nak::serve::grasp_message).collect();
+    let grasps: Vec<pb::Grasp> = two_graspers(&mesh).iter().map(nak::wire::grasp_message).collect();
     let request = |model: &str| pb::PredictRequest {
         model: model.into(),
         grasps: grasps.clone(),

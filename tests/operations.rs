@@ -16,7 +16,8 @@ use nak::client::{ClientConfig, ClientError, connect};
 use nak::engine::{Engine, Limits};
 use nak::proto::v1 as pb;
 use nak::record::{RecordConfig, Recorder};
-use nak::serve::{Intake, Options, grasp_message};
+use nak::serve::{Intake, Options};
+use nak::wire::grasp_message;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tonic::Code;
 
@@ -210,7 +211,7 @@ async fn tls_server_with_health(pki: &Pki, client_ca: bool, health: Option<tokio
     let mut options = Options::new(intake());
     options.health = health;
     options.tls = Some(pki.server_tls(client_ca));
-    options.auth_token = Some(nak::serve::security::read_token(&pki.path("token")).expect("token"));
+    options.auth_token = Some(nak::wire::read_token(&pki.path("token")).expect("token"));
     TestServer::with_options(Engine::new(coarse(), Limits::default()), options).await
 }
 
@@ -334,14 +335,14 @@ async fn bad_security_files_are_refused_naming_the_file() {
         "{err}"
     );
     let missing = Path::new("/nonexistent/token");
-    let err = nak::serve::security::read_token(missing).unwrap_err().to_string();
+    let err = nak::wire::read_token(missing).unwrap_err().to_string();
     assert!(
         err.contains("cannot read bearer token file /nonexistent/token"),
         "{err}"
     );
     let empty = pki.path("empty");
     std::fs::write(&empty, "\n").unwrap();
-    let err = nak::serve::security::read_token(&empty).unwrap_err().to_string();
+    let err = nak::wire::read_token(&empty).unwrap_err().to_string();
     assert!(err.contains("is empty"), "{err}");
     let config = ClientConfig {
         tls_cert: Some(pki.path("client.pem")),

@@ -162,7 +162,7 @@ async fn served_over_grpc_with_the_basis_listed() {
     let response = client
         .predict(pb::PredictRequest {
             model: "reduced-residual".into(),
-            grasps: two_graspers(&mesh).iter().map(nak::serve::grasp_message).collect(),
+            grasps: two_graspers(&mesh).iter().map(nak::wire::grasp_message).collect(),
             ..Default::default()
         })
         .await

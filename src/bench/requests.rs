@@ -4,7 +4,7 @@ use crate::client::Client;
 use crate::data::{GraspSampler, SamplingError};
 use crate::mesh::{GraspRegion, Sampling};
 use crate::proto::v1::{self as pb, GetMeshRequest};
-use crate::serve::{grasp_message, vec3_rows};
+use crate::wire::{grasp_message, vec3_rows};
 
 #[derive(Debug, thiserror::Error)]
 pub enum RequestsError {

@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
-use nak::data::shard;
+use nak::data::join;
 
 #[derive(clap::Args)]
 pub struct JoinArgs {
@@ -16,7 +16,7 @@ pub struct JoinArgs {
 }
 
 pub fn join(args: &JoinArgs) -> anyhow::Result<()> {
-    let joined = shard::join(&args.shards, &args.out)
+    let joined = join::join(&args.shards, &args.out)
         .with_context(|| format!("cannot join {} shards into {}", args.shards.len(), args.out.display()))?;
     println!(
         "{}: {} samples ({} single, {} multi) in {} chunks from {} shards",

@@ -9,9 +9,9 @@ use std::sync::Arc;
 
 use anyhow::Context;
 use nak::engine::{DeformationModel, Engine, RefusedModel};
-use nak::fem::{GreenFunctions, GreenModel, Stiffness};
+use nak::fem::{GreenFunctions, Stiffness};
 use nak::mesh::{self, MeshSource, TetMesh};
-use nak::model::LoadContext;
+use nak::model::{GreenModel, LoadContext};
 use nak::prior::PriorBackend;
 use nak::serve::ServeConfig;
 use tracing::info;

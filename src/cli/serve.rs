@@ -10,8 +10,8 @@ use anyhow::Context;
 use nak::cpu_idle::PollingIdle;
 use nak::engine::Engine;
 use nak::record::{Payload, Recorder};
-use nak::serve::security::read_token;
 use nak::serve::{self, ServeConfig};
+use nak::wire::read_token;
 use tracing::info;
 
 use super::engine::{ModelArgs, build_engine};

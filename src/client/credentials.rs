@@ -4,7 +4,6 @@ use tonic::metadata::{Ascii, MetadataValue};
 use tonic::{Request, Status};
 
 use super::ClientError;
-use crate::serve::security::SecurityError;
 
 /// Adds `authorization: Bearer <token>` to each call, when a token is set.
 #[derive(Debug, Clone, Default)]
@@ -13,7 +12,7 @@ pub struct Credentials(Option<MetadataValue<Ascii>>);
 impl Credentials {
     pub fn new(token: Option<&str>) -> Result<Self, ClientError> {
         let header = token
-            .map(|t| format!("Bearer {t}").parse().map_err(|_| SecurityError::TokenNotAscii))
+            .map(|t| format!("Bearer {t}").parse().map_err(|_| ClientError::TokenNotAscii))
             .transpose()?;
         Ok(Self(header))
     }

@@ -24,7 +24,7 @@ pub use credentials::Credentials;
 pub use targets::{Target, TargetError};
 
 use crate::proto::v1::deformation_client::DeformationClient;
-use crate::serve::security::{SecurityError, read_pem, read_token};
+use crate::wire::{FileError, read_pem, read_token};
 
 /// A Deformation client that sends the configured credentials with every call.
 pub type Client = DeformationClient<InterceptedService<Channel, Credentials>>;
@@ -69,7 +69,9 @@ pub enum ClientError {
     #[error(transparent)]
     Target(#[from] TargetError),
     #[error(transparent)]
-    Security(#[from] SecurityError),
+    File(#[from] FileError),
+    #[error("the bearer token must be printable ASCII (it travels in an HTTP header)")]
+    TokenNotAscii,
     #[error("--tls-cert and --tls-key go together")]
     HalfIdentity,
     #[error("cannot resolve {target}: {source}")]

@@ -350,7 +350,7 @@ pub fn read_chunk(dir: &Path, chunk: usize, node_count: usize) -> Result<Vec<(Sa
             format!("displacement is {:?} {:?}", view.dtype(), view.shape()),
         ));
     }
-    // safetensors data is little-endian, as is every host nak builds for (see serve::convert).
+    // safetensors data is little-endian, as is every host nak builds for (see wire::convert).
     let values: Vec<f32> = bytemuck::pod_collect_to_vec(view.data());
     Ok(samples
         .into_iter()

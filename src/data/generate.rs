@@ -85,7 +85,7 @@ fn linear_field(
     let solver_error = |e: &dyn std::fmt::Display| DatasetError::Solver(format!("sample {}: {e}", sample.index));
     if points.nodes.iter().all(|n| green.candidates().binary_search(n).is_ok()) {
         green
-            .solve(&points, None, &mut field, &mut forces)
+            .solve(&points.nodes, &points.displacements, None, &mut field, &mut forces)
             .map_err(|e| solver_error(&e))?;
     } else {
         direct.fetch_add(1, Ordering::Relaxed);

@@ -5,6 +5,7 @@ pub mod dataset;
 pub mod dcm;
 pub mod force_error;
 pub mod generate;
+pub mod join;
 pub mod sampling;
 pub mod shard;
 

@@ -9,10 +9,9 @@
 //! cached on disk keyed by the mesh and the stiffness's own hash, and memory-mapped; a request is then
 //! a 3K×3K solve and a dense 3N×3K product.
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::HashMap;
 use std::io::Write;
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 use std::time::Instant;
 
 use faer::Mat;
@@ -23,9 +22,7 @@ use rayon::prelude::*;
 use super::nonlinear::NewtonOptions;
 use super::preload::{Preloaded, hyperelastic_hash};
 use super::{FemError, LinearSystem};
-use crate::engine::{Answer, DeformationModel, Forces, ModelError, ModelInfo, ModelKind, StageTiming, Target};
 use crate::mesh::TetMesh;
-use crate::prior::{InteractionPoints, Workspace};
 
 const MAGIC: &[u8; 8] = b"NAKGRN01";
 /// Header bytes before the candidate list: magic, node count, candidate count, two 64-byte hashes.
@@ -35,6 +32,23 @@ const HEADER: usize = 8 + 8 + 8 + 64 + 64;
 const REACH_M: f64 = 0.015;
 /// Right-hand sides solved together.
 const BATCH: usize = 48;
+
+/// Why Green's functions cannot answer a grasp.
+#[derive(Debug, thiserror::Error)]
+pub enum GreenError {
+    #[error(
+        "{model} has no Green's function for node {node}: it serves grasps within {reach_mm:.0} mm of the grasp \
+         regions ({candidates} nodes)"
+    )]
+    NoColumn {
+        model: &'static str,
+        node: u32,
+        reach_mm: f64,
+        candidates: usize,
+    },
+    #[error("G[S,S] is not positive definite")]
+    NotPositiveDefinite,
+}
 
 /// The stiffness K whose inverse the Green's functions are.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -48,10 +62,10 @@ pub enum Stiffness {
 
 impl Stiffness {
     /// The served model these Green's functions are.
-    pub fn model_name(self) -> &'static str {
+    pub const fn model_name(self) -> &'static str {
         match self {
-            Stiffness::Linear => GreenModel::LINEAR,
-            Stiffness::PreloadTangent => GreenModel::TANGENT,
+            Stiffness::Linear => "green-linear",
+            Stiffness::PreloadTangent => "green-tangent",
         }
     }
 
@@ -224,38 +238,34 @@ impl GreenFunctions {
         bytemuck::cast_slice(&self.map[start..start + 4 * len])
     }
 
-    /// Writes the displacement of `target`'s nodes (all nodes when `nodes` is `None`) into `out`, and
-    /// the force on each interaction point, `(G[S,S])⁻¹ u_S` (N), into `forces`.
+    /// For held nodes `held` moved by `moved` (metres), writes the displacement of the nodes `nodes`
+    /// (all nodes when `None`) into `out`, and the force on each held node, `(G[S,S])⁻¹ u_S` (N),
+    /// into `forces`.
     pub fn solve(
         &self,
-        points: &InteractionPoints,
+        held: &[u32],
+        moved: &[[f64; 3]],
         nodes: Option<&[u32]>,
         out: &mut [f32],
         forces: &mut Vec<[f64; 3]>,
-    ) -> Result<(), ModelError> {
-        let k = points.len();
+    ) -> Result<(), GreenError> {
+        let k = held.len();
         let mut columns = Vec::with_capacity(k);
-        for &n in &points.nodes {
-            let c = self.column_of.get(&n).ok_or_else(|| {
-                ModelError::Unsupported(format!(
-                    "{} has no Green's function for node {n}: it serves grasps within {:.0} mm of the grasp \
-                     regions ({} nodes)",
-                    self.stiffness.model_name(),
-                    REACH_M * 1e3,
-                    self.candidates.len()
-                ))
+        for &node in held {
+            let c = self.column_of.get(&node).ok_or_else(|| GreenError::NoColumn {
+                model: self.stiffness.model_name(),
+                node,
+                reach_mm: REACH_M * 1e3,
+                candidates: self.candidates.len(),
             })?;
             columns.push(*c);
         }
         // G[S,S] (3K×3K, symmetric positive definite), then the forces f that produce u_S.
         let gss = DMatrix::<f64>::from_fn(3 * k, 3 * k, |r, c| {
-            self.column(columns[c / 3], c % 3)[3 * points.nodes[r / 3] as usize + r % 3] as f64
+            self.column(columns[c / 3], c % 3)[3 * held[r / 3] as usize + r % 3] as f64
         });
-        let u = DVector::from_iterator(3 * k, points.displacements.iter().flatten().copied());
-        let forces_at_s = gss
-            .cholesky()
-            .ok_or_else(|| ModelError::Runtime("G[S,S] is not positive definite".into()))?
-            .solve(&u);
+        let u = DVector::from_iterator(3 * k, moved.iter().flatten().copied());
+        let forces_at_s = gss.cholesky().ok_or(GreenError::NotPositiveDefinite)?.solve(&u);
         forces.extend(forces_at_s.as_slice().chunks_exact(3).map(|f| [f[0], f[1], f[2]]));
         let weights: Vec<(usize, usize, f32)> = (0..3 * k)
             .map(|i| (columns[i / 3], i % 3, forces_at_s[i] as f32))
@@ -360,72 +370,4 @@ fn compute(
         path: path.display().to_string(),
         source,
     })
-}
-
-/// Green's functions as a served model: `green-linear` or `green-tangent`.
-pub struct GreenModel {
-    info: ModelInfo,
-    green: Arc<GreenFunctions>,
-}
-
-impl GreenModel {
-    pub const LINEAR: &'static str = "green-linear";
-    pub const TANGENT: &'static str = "green-tangent";
-
-    pub fn new(mesh: &TetMesh, green: Arc<GreenFunctions>) -> Self {
-        let stiffness = green.stiffness;
-        let (description, regime, forces, forces_text) = match stiffness {
-            Stiffness::Linear => (
-                "exact linear FEM through precomputed Green's functions (capacitance matrix)",
-                "linear",
-                Forces::Exact,
-                "exact: (G[S,S])⁻¹ u_S, the linear FEM's K·u at the held nodes",
-            ),
-            Stiffness::PreloadTangent => (
-                "the hyperelastic model linearized about its gravity-preloaded equilibrium, through \
-                 precomputed Green's functions (capacitance matrix)",
-                "nonlinear",
-                Forces::Estimate,
-                "(G[S,S])⁻¹ u_S, the tangent's K·u at the held nodes: the change of the held nodes' \
-                 force from the preloaded state, exact for small grasps",
-            ),
-        };
-        let metadata = BTreeMap::from([
-            ("description".to_owned(), description.to_owned()),
-            ("candidate_nodes".to_owned(), green.candidates.len().to_string()),
-            ("forces".to_owned(), forces_text.to_owned()),
-            ("cache".to_owned(), green.path.display().to_string()),
-        ]);
-        Self {
-            info: ModelInfo {
-                name: stiffness.model_name().to_owned(),
-                kind: ModelKind::Exact,
-                mesh: mesh.content_hash.clone(),
-                regime: regime.to_owned(),
-                metadata,
-                forces,
-            },
-            green,
-        }
-    }
-}
-
-impl DeformationModel for GreenModel {
-    fn info(&self) -> &ModelInfo {
-        &self.info
-    }
-
-    fn predict(
-        &self,
-        points: &InteractionPoints,
-        target: Target<'_>,
-        _workspace: &mut Workspace,
-        out: &mut Answer<'_>,
-        timing: &mut StageTiming,
-    ) -> Result<(), ModelError> {
-        let start = Instant::now();
-        self.green.solve(points, target.nodes, out.displacements, out.forces)?;
-        timing.network_us = start.elapsed().as_secs_f32() * 1e6;
-        Ok(())
-    }
 }

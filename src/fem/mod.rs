@@ -9,7 +9,7 @@ pub mod nonlinear;
 pub mod ordering;
 pub mod preload;
 
-pub use green::{GreenFunctions, GreenModel, Stiffness};
+pub use green::{GreenError, GreenFunctions, Stiffness};
 pub use linear::{DofMap, LinearSystem, nodal_forces, solve_dirichlet};
 
 use std::path::{Path, PathBuf};

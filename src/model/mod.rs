@@ -1,6 +1,7 @@
 //! ONNX-exported networks under the model contract (docs/design.md §7): manifests, discovery and serving.
 
 pub mod basis;
+pub mod green;
 pub mod manifest;
 pub mod onnx;
 pub mod prior;
@@ -12,6 +13,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 pub use basis::Basis;
+pub use green::GreenModel;
 pub use manifest::{Channel, Manifest, Method, Mode, PriorModel};
 pub use onnx::{ModelFiles, OnnxModel};
 pub use prior::ModelPrior;

@@ -28,7 +28,10 @@ impl ModelPrior {
                 Ok(kelvinlet.solve_and_evaluate(points, workspace, target.cloud, out)?)
             }
             // The grasp forces the Green's functions also give are not the network's: dropped.
-            ModelPrior::Green(green) => green.solve(points, target.nodes, out, &mut Vec::new()).map(|()| None),
+            ModelPrior::Green(green) => {
+                green.solve(&points.nodes, &points.displacements, target.nodes, out, &mut Vec::new())?;
+                Ok(None)
+            }
         }
     }
 

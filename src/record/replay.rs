@@ -10,7 +10,7 @@ use prost::Message as _;
 
 use super::{REQUESTS, RESPONSES};
 use crate::proto::v1 as pb;
-use crate::serve::response_rows;
+use crate::wire::response_rows;
 
 /// One recorded exchange: what was asked, when, and what was answered (if the answer was recorded).
 #[derive(Debug, Clone, PartialEq)]

@@ -17,7 +17,7 @@ use super::{Exchange, Payload, REQUESTS, RESPONSES, RecordConfig, RecordError, S
 use crate::mesh::TetMesh;
 use crate::proto::foxglove;
 use crate::proto::v1 as pb;
-use crate::serve::{f32_bytes, response_rows};
+use crate::wire::{f32_bytes, response_rows};
 
 /// A chunk is finished at least this often, bounding what a hard kill can lose.
 const FLUSH_EVERY: Duration = Duration::from_secs(1);

@@ -1,7 +1,6 @@
 //! `nak serve`: the gRPC server, with health checking, reflection and graceful shutdown.
 
 pub mod admission;
-pub mod convert;
 pub mod metrics;
 mod priority;
 pub mod security;
@@ -20,7 +19,6 @@ use tonic::transport::ServerTlsConfig;
 use tonic::transport::server::TcpIncoming;
 use tracing::{info, warn};
 
-pub use convert::{f32_bytes, grasp_message, response_rows, vec3_rows};
 pub use priority::{DEFAULT_COMPUTE_NICENESS, favour_runtime_thread, start_compute_pool};
 pub use service::DeformationService;
 

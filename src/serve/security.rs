@@ -1,26 +1,17 @@
 //! Transport security and caller authentication: TLS from PEM files (optionally requiring client
 //! certificates) and a shared bearer token checked on every call except health checks.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use tonic::transport::{Certificate, Identity, ServerTlsConfig};
 use tonic::{Request, Status};
 
+use crate::wire::{FileError, read_pem};
+
 #[derive(Debug, thiserror::Error)]
 pub enum SecurityError {
-    #[error("cannot read {what} {}: {source}", path.display())]
-    Read {
-        what: &'static str,
-        path: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
-    #[error("{} holds no PEM {what} (expected a '-----BEGIN' block)", path.display())]
-    NotPem { what: &'static str, path: PathBuf },
-    #[error("the bearer token file {} is empty", .0.display())]
-    EmptyToken(PathBuf),
-    #[error("the bearer token must be printable ASCII (it travels in an HTTP header)")]
-    TokenNotAscii,
+    #[error(transparent)]
+    File(#[from] FileError),
     #[error("--tls-cert and --tls-key go together: {0} is missing")]
     HalfIdentity(&'static str),
     #[error("--tls-client-ca needs TLS: give --tls-cert and --tls-key too")]
@@ -53,37 +44,6 @@ impl TlsFiles {
         }
         Ok(Some(config))
     }
-}
-
-/// A PEM file's bytes, refused early (with its path) when it is not PEM: rustls's own error names
-/// neither the file nor the problem.
-pub fn read_pem(what: &'static str, path: &Path) -> Result<Vec<u8>, SecurityError> {
-    let bytes = std::fs::read(path).map_err(|source| SecurityError::Read {
-        what,
-        path: path.to_owned(),
-        source,
-    })?;
-    if !bytes.windows(10).any(|w| w == b"-----BEGIN") {
-        return Err(SecurityError::NotPem {
-            what,
-            path: path.to_owned(),
-        });
-    }
-    Ok(bytes)
-}
-
-/// The token in `path`, without surrounding whitespace (files usually end in a newline).
-pub fn read_token(path: &Path) -> Result<String, SecurityError> {
-    let text = std::fs::read_to_string(path).map_err(|source| SecurityError::Read {
-        what: "bearer token file",
-        path: path.to_owned(),
-        source,
-    })?;
-    let token = text.trim();
-    if token.is_empty() {
-        return Err(SecurityError::EmptyToken(path.to_owned()));
-    }
-    Ok(token.to_owned())
 }
 
 /// Checks `authorization: Bearer <token>` on each call; passes every call when no token is set.

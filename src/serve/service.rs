@@ -10,13 +10,13 @@ use tonic::{Code, Request, Response, Status, Streaming};
 use tracing::{debug, warn};
 
 use super::admission::{self, Admission, Permit};
-use super::convert;
 use super::metrics::Metrics;
 use super::status_codes::TOO_LARGE;
 use crate::engine::{self, Engine, EngineError, Prediction, Prepared};
 use crate::proto::v1 as pb;
 use crate::proto::v1::deformation_server::Deformation;
 use crate::record::{Exchange, Recorder};
+use crate::wire::convert;
 
 #[derive(Clone)]
 pub struct DeformationService {
