@@ -1,7 +1,7 @@
-// The multi-point regularized Kelvinlet field (DESIGN.md §3), one invocation per node:
+// The multi-point regularized Kelvinlet field (docs/design.md §3), one invocation per node:
 // u(x) = Σ_j [(a/r_ε + b/r_ε³) k_j + r (r·k_j)/r_ε³],  r = x − x_j,  r_ε = sqrt(|r|² + ε²),
 // with the scale s folded into the coefficients k_j (as in the CPU kernel, kernel.rs).
-// A request may add a resident basis's field Φ g (a reduced network's residual, DESIGN.md §7) in the
+// A request may add a resident basis's field Φ g (a reduced network's residual, docs/design.md §7) in the
 // same pass: Φ for the request's cloud stored mode by mode, [M, 3, N], so that neighbouring
 // invocations read neighbouring words; g in `points` after its interaction points.
 // One dispatch serves a batch of requests: workgroup row y is request y.

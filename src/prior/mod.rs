@@ -1,4 +1,4 @@
-//! The regularized Kelvinlet prior (DESIGN.md §3, with the ε² term the paper's equation drops).
+//! The regularized Kelvinlet prior (docs/design.md §3, with the ε² term the paper's equation drops).
 //!
 //! For interaction points `x_j` with prescribed displacements `u_j`, the coefficients `k` solve
 //! `(ΓᵀΓ + λI) k = Γᵀu` (f64, [`solve`]), and the field `u(x) = Σ_j Γ_j(x) k_j` is evaluated over
