@@ -109,6 +109,10 @@ async fn errors_are_counted_by_status_code() {
             report.errors
         );
         assert!(report.requests > 50);
+        // What the server said comes with the count, in the JSON and the table.
+        let example = &report.error_examples["NOT_FOUND"];
+        assert!(example.contains("unknown model \"no-such-model\""), "{example}");
+        assert!(report.table().contains("NOT_FOUND"), "{}", report.table());
         // Every outcome was a refusal: timed as such, and nothing as an answer.
         let refused = report.refused_us.unwrap();
         assert_eq!(refused.max, report.latency_us.max);

@@ -1,14 +1,14 @@
-//! Admission control and deadlines: a bound on requests admitted to the compute pool (running or
-//! waiting there), so that a burst is refused at once instead of growing everyone's latency, and
-//! the gRPC deadline of each call, so that no core computes an answer nobody will read.
+//! Admission control and deadlines: a bound on the requests being answered (from their arrival,
+//! [`super::arrival`], until their answer, whether computed on the thread that read them or on the
+//! compute pool), so that a burst is refused at once instead of growing everyone's latency, and the
+//! gRPC deadline of each call, so that no core computes an answer nobody will read.
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
-use tonic::codegen::http;
+use tonic::Status;
 use tonic::metadata::MetadataMap;
-use tower::util::MapRequestLayer;
 
 /// Requests admitted per compute thread by default. Each waits behind at most this many others per
 /// core: the Kelvinlet prior on the phantom costs ~0.2 ms, so an admitted request waits ~1 ms at
@@ -16,7 +16,9 @@ use tower::util::MapRequestLayer;
 pub const PER_THREAD: usize = 4;
 
 /// How much before a call's deadline nak gives up on it, at most (see [`deadline`]).
-pub const DEADLINE_MARGIN: Duration = Duration::from_millis(5);
+/// 10 ms: with 5, tonic's own timer still won now and then on a busy two-core virtual machine
+/// (tests/admission.rs, 1 run in 10, debug build).
+pub const DEADLINE_MARGIN: Duration = Duration::from_millis(10);
 
 /// Counts what admission control did since start.
 #[derive(Debug, Default)]
@@ -47,6 +49,11 @@ impl Admission {
         })
     }
 
+    /// Requests holding a place now.
+    pub fn in_flight(&self) -> usize {
+        self.admitted.load(Ordering::Acquire)
+    }
+
     pub fn limit(&self) -> usize {
         self.limit
     }
@@ -63,6 +70,14 @@ impl Admission {
                 None
             }
         }
+    }
+
+    /// The refusal of a request beyond the bound.
+    pub fn at_capacity(&self) -> Status {
+        Status::resource_exhausted(format!(
+            "the server is at capacity: {} requests are being computed or waiting (--max-in-flight); retry shortly",
+            self.limit
+        ))
     }
 
     /// A request answered DEADLINE_EXCEEDED.
@@ -85,28 +100,6 @@ impl Admission {
             abandoned: self.abandoned.load(Ordering::Relaxed),
         }
     }
-}
-
-/// When a call's headers arrived: stamped by [`arrival_layer`] at the point where tonic's own deadline
-/// timer starts. The handler runs only once the message has arrived and been decoded, later by as much
-/// as a busy machine delays it, so a deadline counted from there could overshoot the caller's.
-#[derive(Clone, Copy, Debug)]
-pub struct Arrival(Instant);
-
-/// Stamps each call with its [`Arrival`].
-pub fn arrival_layer<B>() -> MapRequestLayer<fn(http::Request<B>) -> http::Request<B>> {
-    MapRequestLayer::new(|mut request: http::Request<B>| {
-        request.extensions_mut().insert(Arrival(Instant::now()));
-        request
-    })
-}
-
-/// When `request` arrived: its [`Arrival`] stamp, or now where no layer stamped it.
-pub fn arrival<T>(request: &tonic::Request<T>) -> Instant {
-    request
-        .extensions()
-        .get::<Arrival>()
-        .map_or_else(Instant::now, |arrival| arrival.0)
 }
 
 /// When to give up on a call with a `grpc-timeout` header, measured from `received`.
@@ -172,37 +165,8 @@ mod tests {
         let now = Instant::now();
         assert_eq!(deadline(&metadata, now), None);
         metadata.insert("grpc-timeout", "100m".parse().unwrap());
-        assert_eq!(deadline(&metadata, now), Some(now + Duration::from_millis(95)));
+        assert_eq!(deadline(&metadata, now), Some(now + Duration::from_millis(90)));
         metadata.insert("grpc-timeout", "2m".parse().unwrap());
         assert_eq!(deadline(&metadata, now), Some(now + Duration::from_micros(1500)));
-    }
-
-    #[test]
-    fn a_call_arrives_when_the_layer_stamps_it_not_when_its_handler_runs() {
-        use tower::{Layer, Service, ServiceExt};
-        let stamped = tokio::runtime::Builder::new_current_thread()
-            .build()
-            .unwrap()
-            .block_on(async {
-                let echo = tower::service_fn(|request: http::Request<()>| async move {
-                    Ok::<_, std::convert::Infallible>(request)
-                });
-                let mut service = arrival_layer().layer(echo);
-                let before = Instant::now();
-                let request = service
-                    .ready()
-                    .await
-                    .unwrap()
-                    .call(http::Request::new(()))
-                    .await
-                    .unwrap();
-                (before, tonic::Request::from_http(request))
-            });
-        let (before, request) = stamped;
-        std::thread::sleep(Duration::from_millis(20));
-        let arrived = arrival(&request);
-        assert!(arrived >= before && arrived.elapsed() >= Duration::from_millis(20));
-        // Unstamped (a service called without the layer): now.
-        assert!(arrival(&tonic::Request::new(())).elapsed() < Duration::from_millis(20));
     }
 }

@@ -160,6 +160,15 @@ impl Metrics {
         }
     }
 
+    /// Counts a unary call refused at its arrival, before its request (and so its model) was read.
+    pub fn observe_refused_at_arrival(&self) {
+        let labels = RequestLabels {
+            model: self.unknown.clone(),
+            code: self.codes[Code::ResourceExhausted as usize].clone(),
+        };
+        self.requests.get_or_create(&labels).inc();
+    }
+
     /// The OpenMetrics text exposition of every metric.
     pub fn encode(&self) -> String {
         let mut text = String::new();

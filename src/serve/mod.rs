@@ -1,6 +1,7 @@
 //! `nak serve`: the gRPC server, with health checking, reflection and graceful shutdown.
 
 pub mod admission;
+pub mod arrival;
 pub mod metrics;
 mod priority;
 pub mod security;
@@ -28,8 +29,10 @@ use crate::proto::v1::FILE_DESCRIPTOR_SET;
 use crate::proto::v1::deformation_server::DeformationServer;
 use crate::record::{Payload, RecordConfig, Recorder};
 use admission::Admission;
+use arrival::ArrivalLayer;
 use metrics::Metrics;
 use security::{RequireToken, SecurityError, TlsFiles};
+use tower::Layer;
 
 /// Server settings, from flags or a TOML file (`nak serve --config serve.toml`).
 #[derive(Debug, Clone, PartialEq, Deserialize, serde::Serialize)]
@@ -260,11 +263,13 @@ pub async fn run(
     }
     let admission = Admission::new(intake.max_in_flight);
     let metrics = Arc::new(Metrics::new(engine.clone(), admission.clone(), recorder.clone()));
+    let arrival = ArrivalLayer::new(admission.clone(), Some(metrics.clone()));
     let service = DeformationService::new(engine.clone(), recorder, admission, metrics.clone());
     let deformation = DeformationServer::new(service).max_decoding_message_size(intake.max_message_bytes);
-    // Health checks stay open: probes (kubelet, load balancers) carry no token.
+    // Health checks stay open: probes (kubelet, load balancers) carry no token. A call without the
+    // token is refused before it is admitted, so it takes no place.
     let check_token = RequireToken::new(auth_token.as_deref());
-    let deformation = InterceptedService::new(deformation, check_token.clone());
+    let deformation = InterceptedService::new(arrival.layer(deformation), check_token.clone());
     let reflection = InterceptedService::new(reflection, check_token);
     // Stopping the gRPC server stops the metrics and health ports too.
     let (stopped, _) = tokio::sync::watch::channel(());
@@ -306,7 +311,7 @@ pub async fn run(
     }
     builder
         .layer(status_codes::layer())
-        .layer(admission::arrival_layer())
+        .layer(arrival::stamp_layer())
         .add_service(health_service)
         .add_service(reflection)
         .add_service(deformation)

@@ -9,7 +9,8 @@ use tokio_stream::{Stream, StreamExt};
 use tonic::{Code, Request, Response, Status, Streaming};
 use tracing::{debug, warn};
 
-use super::admission::{self, Admission, Permit};
+use super::admission::{self, Admission};
+use super::arrival::{self, Admitted};
 use super::metrics::Metrics;
 use super::status_codes::TOO_LARGE;
 use crate::engine::{self, Engine, EngineError, Prediction, Prepared};
@@ -27,6 +28,9 @@ pub struct DeformationService {
     started: Instant,
     /// GetMesh's answer, built once: the mesh never changes while serving.
     mesh: Arc<pb::Mesh>,
+    /// Quick requests are computed on the thread that read them while at most this many requests
+    /// hold places: one runtime thread fewer than the runtime has (at least one).
+    inline_while: usize,
 }
 
 impl DeformationService {
@@ -43,6 +47,9 @@ impl DeformationService {
             admission,
             metrics,
             started: Instant::now(),
+            inline_while: tokio::runtime::Handle::try_current()
+                .map_or(1, |runtime| runtime.metrics().num_workers().saturating_sub(1))
+                .max(1),
         }
     }
 
@@ -51,9 +58,10 @@ impl DeformationService {
         &self,
         message: pb::PredictRequest,
         deadline: Option<Instant>,
+        admitted: Option<Admitted>,
     ) -> Result<pb::PredictResponse, Status> {
         let received = SystemTime::now();
-        let answer = self.answer(&message, deadline).await;
+        let answer = self.answer(&message, deadline, admitted).await;
         match &answer {
             Ok(response) => self.metrics.observe(&message.model, Code::Ok, response.timing.as_ref()),
             Err(status) => self.metrics.observe(&message.model, status.code(), None),
@@ -74,26 +82,29 @@ impl DeformationService {
     /// A prior over the phantom takes about 50 µs on one core; handing it to the pool and back costs
     /// two thread wake-ups, each 15–40 µs on a small virtual machine, so requests the engine calls
     /// quick ([`Engine::is_quick`]) are computed here, blocking this runtime thread no longer than a
-    /// wake-up or two would have. Networks and exact solves (milliseconds, parallel inside) go to
-    /// rayon's pool, leaving the runtime's threads to network I/O: run inline they would stall every
-    /// other connection.
+    /// wake-up or two would have, as long as the server is not busy: with as many requests holding
+    /// places as the runtime has threads but one, a quick request goes to the pool too, so that a
+    /// runtime thread stays free to read calls and refuse those beyond the bound. Networks and exact
+    /// solves (milliseconds, parallel inside) always go to rayon's pool, leaving the runtime's threads
+    /// to network I/O: run inline they would stall every other connection.
     ///
-    /// Only admitted requests are computed, and nothing is computed for a caller that has gone or
+    /// Only admitted requests are computed (`admitted`: the place a unary call took at its arrival;
+    /// a stream's message takes one here), and nothing is computed for a caller that has gone or
     /// whose deadline has passed.
     async fn answer(
         &self,
         message: &pb::PredictRequest,
         deadline: Option<Instant>,
+        admitted: Option<Admitted>,
     ) -> Result<pb::PredictResponse, Status> {
         let received = Instant::now();
         let request = convert::request(message)?;
-        let permit = self.admission.try_admit().ok_or_else(|| {
-            Status::resource_exhausted(format!(
-                "the server is at capacity: {} requests are being computed or waiting (--max-in-flight); retry \
-                 shortly",
-                self.admission.limit()
-            ))
-        })?;
+        let permit = match admitted {
+            Some(place) => place,
+            None => Admitted(Arc::new(
+                self.admission.try_admit().ok_or_else(|| self.admission.at_capacity())?,
+            )),
+        };
         let refusal = |e: EngineError| {
             let status = convert::status(&e);
             if status.code() == Code::Internal {
@@ -104,7 +115,11 @@ impl DeformationService {
             status
         };
         let prepared = self.engine.prepare(&request).map_err(refusal)?;
-        let outcome = if self.engine.is_quick(&prepared, &request) {
+        // While others are being answered, a runtime thread that computed would leave calls unread
+        // (and unrefused) behind it: then even a quick request goes to the pool, whose threads yield
+        // to the runtime's (--compute-niceness).
+        let inline = self.admission.in_flight() <= self.inline_while;
+        let outcome = if inline && self.engine.is_quick(&prepared, &request) {
             let _permit = permit;
             if deadline.is_some_and(|d| received >= d) {
                 self.admission.count_expired();
@@ -129,7 +144,7 @@ impl DeformationService {
         &self,
         prepared: Prepared,
         request: engine::Request,
-        permit: Permit,
+        permit: Admitted,
         deadline: Option<Instant>,
         model: &str,
     ) -> Result<Result<Prediction, EngineError>, Status> {
@@ -219,9 +234,10 @@ impl Deformation for DeformationService {
         Ok(Response::new(pb::ListModelsResponse { models }))
     }
 
-    async fn predict(&self, request: Request<pb::PredictRequest>) -> Result<Response<pb::PredictResponse>, Status> {
-        let deadline = admission::deadline(request.metadata(), admission::arrival(&request));
-        self.predict_one(request.into_inner(), deadline)
+    async fn predict(&self, mut request: Request<pb::PredictRequest>) -> Result<Response<pb::PredictResponse>, Status> {
+        let deadline = admission::deadline(request.metadata(), arrival::arrival(&request));
+        let admitted = arrival::admitted(&mut request);
+        self.predict_one(request.into_inner(), deadline, admitted)
             .await
             .map(Response::new)
     }
@@ -233,7 +249,7 @@ impl Deformation for DeformationService {
         request: Request<Streaming<pb::PredictRequest>>,
     ) -> Result<Response<Self::PredictStreamStream>, Status> {
         // A stream's deadline is its call's: every message must be answered before it.
-        let deadline = admission::deadline(request.metadata(), admission::arrival(&request));
+        let deadline = admission::deadline(request.metadata(), arrival::arrival(&request));
         let mut incoming = request.into_inner();
         let service = self.clone();
         // Requests are answered one at a time as they arrive, so answers keep their order. A refused
@@ -244,7 +260,7 @@ impl Deformation for DeformationService {
                     Ok(message) => {
                         let sequence = message.sequence;
                         Ok(service
-                            .predict_one(message, deadline)
+                            .predict_one(message, deadline, None)
                             .await
                             .unwrap_or_else(|status| pb::PredictResponse {
                                 sequence,

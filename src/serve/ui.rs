@@ -48,7 +48,7 @@ where
     let grpc_web = ServiceBuilder::new()
         .layer(tonic_web::GrpcWebLayer::new())
         .layer(status_codes::layer())
-        .layer(super::admission::arrival_layer())
+        .layer(super::arrival::stamp_layer())
         .service(service);
     let mut app = axum::Router::new().route("/", get(|| asset("text/html; charset=utf-8", PAGE)));
     for (path, source) in MODULES {
