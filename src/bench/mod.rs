@@ -90,6 +90,8 @@ struct Tally {
     gpu: GpuTally,
     generator: Mutex<Histogram<u64>>,
     errors: Mutex<BTreeMap<String, u64>>,
+    /// The first message seen with each error code.
+    error_examples: Mutex<BTreeMap<String, String>>,
     intervals: Option<Intervals>,
     completed: AtomicU64,
     failed: AtomicU64,
@@ -146,6 +148,7 @@ impl Tally {
             },
             generator: Mutex::new(histogram()?),
             errors: Mutex::new(BTreeMap::new()),
+            error_examples: Mutex::new(BTreeMap::new()),
             intervals,
             completed: AtomicU64::new(0),
             failed: AtomicU64::new(0),
@@ -172,7 +175,7 @@ impl Tally {
 
     /// Records one answer to a request due at `due`; answers to requests due outside the window are
     /// not counted.
-    fn record(&self, due: Instant, outcome: Result<ServerTime, String>) {
+    fn record(&self, due: Instant, outcome: Result<ServerTime, Refusal>) {
         if !self.in_window(due) {
             return;
         }
@@ -198,9 +201,12 @@ impl Tally {
                     self.gpu.record(gpu);
                 }
             }
-            Err(code) => {
+            Err(Refusal { code, message }) => {
                 record(&self.refused, micros);
                 self.failed.fetch_add(1, Ordering::Relaxed);
+                if let Ok(mut examples) = self.error_examples.lock() {
+                    examples.entry(code.clone()).or_insert(message);
+                }
                 if let Ok(mut errors) = self.errors.lock() {
                     *errors.entry(code).or_default() += 1;
                 }
@@ -308,6 +314,22 @@ impl ServerTime {
             prior_us: t.prior_us,
             gpu: t.gpu,
         })
+    }
+}
+
+/// An answer that was not a prediction: its gRPC status code's name and its message.
+#[derive(Debug, Clone)]
+struct Refusal {
+    code: String,
+    message: String,
+}
+
+impl Refusal {
+    fn of(status: &tonic::Status) -> Self {
+        Self {
+            code: code_name(status.code()),
+            message: status.message().to_owned(),
+        }
     }
 }
 
@@ -435,6 +457,7 @@ pub async fn run(config: &BenchConfig, progress: impl Fn(Progress)) -> Result<Re
         gpu: tally.gpu.summary()?,
         generator_us: Percentiles::of(&generator),
         errors: tally.errors.lock().map(|e| e.clone()).unwrap_or_default(),
+        error_examples: tally.error_examples.lock().map(|e| e.clone()).unwrap_or_default(),
         intervals: tally.intervals(),
         steal_percent,
         client_cpu_us,
@@ -523,7 +546,7 @@ impl Job {
         tally.record_sent(due, Instant::now());
         let outcome = match client.predict(request).await {
             Ok(r) => Ok(ServerTime::of(r.into_inner().timing)),
-            Err(status) => Err(code_name(status.code())),
+            Err(status) => Err(Refusal::of(&status)),
         };
         tally.record(due, outcome);
     }
@@ -539,7 +562,7 @@ impl Job {
         {
             Ok(r) => r.into_inner(),
             Err(status) => {
-                self.tally.record(self.tally.window.0, Err(code_name(status.code())));
+                self.tally.record(self.tally.window.0, Err(Refusal::of(&status)));
                 return;
             }
         };
@@ -578,11 +601,20 @@ impl Job {
             };
             let (outcome, last) = match answer {
                 Ok(Some(r)) => match r.error {
-                    Some(e) => (Err(code_name(tonic::Code::from_i32(e.code))), false),
+                    Some(e) => {
+                        let code = code_name(tonic::Code::from_i32(e.code));
+                        (
+                            Err(Refusal {
+                                code,
+                                message: e.message,
+                            }),
+                            false,
+                        )
+                    }
                     None => (Ok(ServerTime::of(r.timing)), false),
                 },
                 Ok(None) => break,
-                Err(status) => (Err(code_name(status.code())), true),
+                Err(status) => (Err(Refusal::of(&status)), true),
             };
             tally.record(due, outcome);
             if last || (closed_loop && answered_tx.send(()).await.is_err()) {

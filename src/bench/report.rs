@@ -76,6 +76,9 @@ pub struct Report {
     pub generator_us: Percentiles,
     /// By gRPC status code name.
     pub errors: BTreeMap<String, u64>,
+    /// The first message seen with each code in `errors`: where it came from (the server's words, or
+    /// the client's when the call never got an answer).
+    pub error_examples: BTreeMap<String, String>,
     /// Per `--interval`, in order; empty without it.
     pub intervals: Vec<Interval>,
     /// The share of this machine's CPU time that its hypervisor gave to other guests while measuring
@@ -113,7 +116,10 @@ impl Report {
         } else {
             self.errors
                 .iter()
-                .map(|(k, v)| format!("{k} {v}"))
+                .map(|(k, v)| match self.error_examples.get(k) {
+                    Some(example) => format!("{k} {v} (\"{}\")", shortened(example)),
+                    None => format!("{k} {v}"),
+                })
                 .collect::<Vec<_>>()
                 .join(", ")
         };
@@ -178,5 +184,14 @@ impl Report {
             (l.p50 - s.p50 - self.generator_us.p50).max(0.0),
             errors
         )
+    }
+}
+
+/// The first line of `message`, at most 120 characters: enough to say what went wrong in a table.
+fn shortened(message: &str) -> String {
+    let line = message.lines().next().unwrap_or_default();
+    match line.char_indices().nth(120) {
+        Some((end, _)) => format!("{}…", &line[..end]),
+        None => line.to_owned(),
     }
 }
