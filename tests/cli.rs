@@ -308,10 +308,12 @@ fn serve_checks_the_token_exports_metrics_and_warns_when_exposed_without_tls() {
         .unwrap();
     // Every answer the load test counted was counted by the server too (it may have answered one
     // more, after the measured window closed); how many fit in 300 ms depends on the machine's load.
-    let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
     let counted = report["requests"].as_u64().unwrap();
-    assert!(counted > 0 && report["errors"].as_object().unwrap().is_empty(), "{report}");
+    assert!(
+        counted > 0 && report["errors"].as_object().unwrap().is_empty(),
+        "{report}"
+    );
     assert!(answered >= counted as f64, "{counted} answers measured; {text}");
     let (exit, rest) = server.stop();
     assert!(exit.success(), "exit {exit:?}; log: {rest:?}");
