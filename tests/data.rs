@@ -413,3 +413,85 @@ fn shards_join_into_the_dataset_an_unsharded_run_makes() {
     refused(&join(&path("j6"), &[&path("whole"), &first]), &["not a shard"]);
     refused(&join(&path("whole"), &[&first, &second]), &["not empty"]);
 }
+
+#[test]
+fn data_of_two_volumetric_laws_is_never_mixed() {
+    let dir = tempfile::tempdir().unwrap();
+    let cache = dir.path().join("cache");
+    let path = |name: &str| dir.path().join(name);
+    // The box again, its model.toml naming the law before (ln J)².
+    let old_law = path("old-law");
+    std::fs::create_dir(&old_law).unwrap();
+    let fixtures = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures");
+    std::fs::copy(fixtures.join("box.msh"), old_law.join("box.msh")).unwrap();
+    let config = std::fs::read_to_string(fixtures.join("model.toml")).unwrap();
+    let config = config + "\n[hyperelastic]\nvolumetric_law = \"j-minus-one-squared\"\n";
+    std::fs::write(old_law.join("model.toml"), config).unwrap();
+    let datagen_old = |out: &Path, extra: &[&str]| {
+        nak()
+            .args(["datagen", "--mesh"])
+            .arg(old_law.join("box.msh"))
+            .args(["--single", "6", "--multi", "0", "--chunk-size", "3", "--seed", "3"])
+            .args(["--regime", "nonlinear", "--out"])
+            .arg(out)
+            .arg("--cache-dir")
+            .arg(&cache)
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    let new = ["--regime", "nonlinear", "--shard", "0/2"];
+    let made = datagen_box(&path("new"), &cache, &new);
+    assert!(made.status.success(), "{}", String::from_utf8_lossy(&made.stderr));
+    let made = datagen_old(&path("old"), &["--shard", "1/2"]);
+    assert!(made.status.success(), "{}", String::from_utf8_lossy(&made.stderr));
+    for (name, law) in [("new", "ln-j-squared"), ("old", "j-minus-one-squared")] {
+        let info = std::fs::read_to_string(path(name).join("dataset.json")).unwrap();
+        assert!(info.contains(&format!("\"volumetric_law\": \"{law}\"")), "{info}");
+    }
+    // Each law has its own gravity preload in the cache: neither is read for the other.
+    let preloads = std::fs::read_dir(&cache)
+        .unwrap()
+        .filter(|e| {
+            e.as_ref()
+                .unwrap()
+                .file_name()
+                .to_string_lossy()
+                .starts_with("preload-")
+        })
+        .count();
+    assert_eq!(preloads, 2);
+    // Joining the two halves, or resuming one under the other law, is refused with both laws named.
+    let both = ["volumetric_law", "\"ln-j-squared\"", "\"j-minus-one-squared\""];
+    refused(&join(&path("joined"), &[&path("new"), &path("old")]), &both);
+    refused(
+        &datagen_old(&path("new"), &["--shard", "0/2"]),
+        &["holds another dataset", both[1], both[2]],
+    );
+    // Scoring data of one law on a mesh configured with the other is refused too.
+    let eval = nak()
+        .args([
+            "eval",
+            "--model",
+            "green-tangent",
+            "--green-tangent",
+            "--split",
+            "all",
+            "--mesh",
+        ])
+        .arg(fixture_box())
+        .arg("--data")
+        .arg(path("old"))
+        .arg("--cache-dir")
+        .arg(&cache)
+        .output()
+        .unwrap();
+    refused(
+        &eval,
+        &[
+            "j-minus-one-squared (κ/2)(J − 1)²",
+            "ln-j-squared (κ/2)(ln J)²",
+            "model.toml",
+        ],
+    );
+}

@@ -11,7 +11,7 @@ use nak::fem::hyperelastic::MooneyRivlin;
 use nak::fem::nonlinear::{Equilibrium, Hyperelastic, Load, NewtonOptions};
 use nak::fem::preload::Preloaded;
 use nak::fem::{GreenFunctions, Stiffness, solve_dirichlet};
-use nak::mesh::{MeshConfig, TetMesh};
+use nak::mesh::{MeshConfig, TetMesh, VolumetricLaw};
 use nak::prior::InteractionPoints;
 use nalgebra::Matrix3;
 
@@ -52,8 +52,10 @@ fn pull_under_gravity(m: &TetMesh, pull: [f64; 3], options: NewtonOptions) -> (V
     (prescribed, result)
 }
 
-fn liver() -> MooneyRivlin {
-    MooneyRivlin::new(1620.0, 1970.0, 0.45)
+const LAWS: [VolumetricLaw; 2] = [VolumetricLaw::LnJSquared, VolumetricLaw::JMinusOneSquared];
+
+fn liver(volumetric: VolumetricLaw) -> MooneyRivlin {
+    MooneyRivlin::new(1620.0, 1970.0, 0.45, volumetric)
 }
 
 /// A generic deformation gradient with J ≈ 1.1, sheared and rotated.
@@ -69,34 +71,44 @@ fn largest(values: impl IntoIterator<Item = f64>) -> f64 {
 /// to these stresses (kPa): 1e-6 relative separates a correct derivative from a wrong one by orders.
 const DIFFERENCE_TOLERANCE: f64 = 1e-6;
 
+/// A compressed one, J ≈ 0.3, where the two volumetric laws differ most.
+fn compression() -> Matrix3<f64> {
+    Matrix3::new(0.62, 0.10, -0.04, -0.06, 0.70, 0.08, 0.03, -0.05, 0.72)
+}
+
 #[test]
 fn stress_and_tangent_are_the_derivatives_of_the_energy() {
-    let law = liver();
-    let f = deformation();
-    let (p, a) = law.stress_and_tangent(&f).unwrap();
-    let h = 1e-6;
-    for k in 0..3 {
-        for l in 0..3 {
-            let mut plus = f;
-            plus[(k, l)] += h;
-            let mut minus = f;
-            minus[(k, l)] -= h;
-            let dw = (law.energy(&plus).unwrap() - law.energy(&minus).unwrap()) / (2.0 * h);
-            assert!(
-                (dw - p[(k, l)]).abs() <= DIFFERENCE_TOLERANCE * largest(p.iter().copied()),
-                "P[{k}{l}] = {} vs dW/dF = {dw}",
-                p[(k, l)]
-            );
-            let dp = (law.stress(&plus).unwrap() - law.stress(&minus).unwrap()) / (2.0 * h);
-            let scale = largest(a.iter().flatten().copied());
-            for i in 0..3 {
-                for j in 0..3 {
-                    let exact = a[3 * i + j][3 * k + l];
-                    assert!(
-                        (dp[(i, j)] - exact).abs() <= DIFFERENCE_TOLERANCE * scale,
-                        "A[{i}{j}][{k}{l}] = {exact} vs {}",
-                        dp[(i, j)]
-                    );
+    for (law, f) in LAWS
+        .iter()
+        .flat_map(|&v| [(liver(v), deformation()), (liver(v), compression())])
+    {
+        let (p, a) = law.stress_and_tangent(&f).unwrap();
+        let h = 1e-6;
+        for k in 0..3 {
+            for l in 0..3 {
+                let mut plus = f;
+                plus[(k, l)] += h;
+                let mut minus = f;
+                minus[(k, l)] -= h;
+                let dw = (law.energy(&plus).unwrap() - law.energy(&minus).unwrap()) / (2.0 * h);
+                assert!(
+                    (dw - p[(k, l)]).abs() <= DIFFERENCE_TOLERANCE * largest(p.iter().copied()),
+                    "{:?}: P[{k}{l}] = {} vs dW/dF = {dw}",
+                    law.volumetric,
+                    p[(k, l)]
+                );
+                let dp = (law.stress(&plus).unwrap() - law.stress(&minus).unwrap()) / (2.0 * h);
+                let scale = largest(a.iter().flatten().copied());
+                for i in 0..3 {
+                    for j in 0..3 {
+                        let exact = a[3 * i + j][3 * k + l];
+                        assert!(
+                            (dp[(i, j)] - exact).abs() <= DIFFERENCE_TOLERANCE * scale,
+                            "{:?}: A[{i}{j}][{k}{l}] = {exact} vs {}",
+                            law.volumetric,
+                            dp[(i, j)]
+                        );
+                    }
                 }
             }
         }
@@ -104,8 +116,34 @@ fn stress_and_tangent_are_the_derivatives_of_the_energy() {
 }
 
 #[test]
+fn the_log_law_is_a_barrier_and_agrees_with_the_quadratic_one_near_the_reference() {
+    // Uniform compression to volume ratio J: the isochoric terms vanish, U(J) is all that is left.
+    let squeeze = |j: f64| Matrix3::from_diagonal_element(j.cbrt());
+    let [log, quadratic] = LAWS.map(liver);
+    // To second order at J = 1 the laws are one: ln J = (J − 1) − (J − 1)²/2 + …, so their
+    // energies differ by O((J − 1)³) ...
+    for x in [1e-2f64, 1e-3] {
+        let (a, b) = (
+            log.energy(&squeeze(1.0 - x)).unwrap(),
+            quadratic.energy(&squeeze(1.0 - x)).unwrap(),
+        );
+        assert!(
+            (a - b).abs() <= 0.6 * log.kappa * x.powi(3),
+            "J = {}: {a} vs {b}",
+            1.0 - x
+        );
+    }
+    // ... while towards J = 0 only the log law's energy grows without bound.
+    let (a, b) = (
+        log.energy(&squeeze(1e-6)).unwrap(),
+        quadratic.energy(&squeeze(1e-6)).unwrap(),
+    );
+    assert!(a > 50.0 * b, "{a} vs {b}");
+}
+
+#[test]
 fn the_reference_state_is_stress_free_and_inverted_states_are_refused() {
-    let law = liver();
+    let law = liver(VolumetricLaw::LnJSquared);
     assert!(largest(law.stress(&Matrix3::identity()).unwrap().iter().copied()) < 1e-9);
     assert_eq!(law.energy(&Matrix3::identity()), Some(0.0));
     let mirrored = Matrix3::from_diagonal(&nalgebra::Vector3::new(-1.0, 1.0, 1.0));
@@ -191,9 +229,14 @@ fn principal_stress(law: &MooneyRivlin, s: [f64; 3]) -> [f64; 3] {
     let i2 = s[0].powi(2) * s[1].powi(2) + s[1].powi(2) * s[2].powi(2) + s[0].powi(2) * s[2].powi(2);
     std::array::from_fn(|k| {
         let others = i1 - s[k] * s[k];
+        // J U′(J): ∂U/∂λ_k = U′(J) J / λ_k.
+        let volumetric = match law.volumetric {
+            VolumetricLaw::LnJSquared => law.kappa * j.ln(),
+            VolumetricLaw::JMinusOneSquared => law.kappa * (j - 1.0) * j,
+        };
         law.c10 * j.powf(-2.0 / 3.0) * (2.0 * s[k] - 2.0 / 3.0 * i1 / s[k])
             + law.c01 * j.powf(-4.0 / 3.0) * (2.0 * s[k] * others - 4.0 / 3.0 * i2 / s[k])
-            + law.kappa * (j - 1.0) * j / s[k]
+            + volumetric / s[k]
     })
 }
 
@@ -203,7 +246,7 @@ fn a_cube_in_uniaxial_stretch_carries_the_analytic_mooney_rivlin_stress() {
     // Hold only the corner at the origin (it does not move under F); prescribe the rest of the surface.
     fixture.sets[0].1 = vec![0];
     let m = mesh(&fixture);
-    let law = MooneyRivlin::from_material(&m.config.materials["liver"]);
+    let law = MooneyRivlin::from_material(&m.config.materials["liver"], m.config.volumetric_law);
     let stretch = 1.3;
     // Lateral stretch with zero lateral stress, by bisection on the analytic stress.
     let (mut low, mut high) = (0.5, 1.0);
@@ -279,10 +322,11 @@ fn newton_decreases_the_energy_and_converges_under_gravity_and_a_large_grasp() {
 }
 
 #[test]
-fn inverting_trial_steps_are_cut_and_the_solve_still_converges() {
+fn a_deep_poke_is_solved_with_feasible_steps_only() {
     let m = mesh(&Fixture::grid(3));
     // Push the grasp face's centre node 25 mm into a 30 mm cube (cells are 10 mm): the linear
-    // predictor over the whole load folds the neighbouring elements.
+    // predictor over the whole load would fold the neighbouring elements, so it is shortened to
+    // stop short of the first collapse, and no trial state ever inverts.
     let centre = m.node_sets["grasp_01"]
         .iter()
         .copied()
@@ -293,9 +337,34 @@ fn inverting_trial_steps_are_cut_and_the_solve_still_converges() {
         .unwrap();
     let prescribed = [(centre, [-0.025, 0.0, 0.0])];
     let (solver, result) = solve_without_gravity(&m, &prescribed);
-    assert!(result.stats.inverted_trials > 0, "{:?}", result.stats);
-    assert!(result.stats.step_cuts > 0, "{:?}", result.stats);
+    assert!(result.stats.shortened_predictors > 0, "{:?}", result.stats);
+    assert_eq!(result.stats.inverted_trials, 0, "{:?}", result.stats);
     assert!(solver.energy(&result.displacement, 0.0).is_some());
+}
+
+#[test]
+fn newton_restarted_from_a_converged_state_stays_there() {
+    let m = mesh(&Fixture::bar([6, 2, 2], [0.01; 3]));
+    let (prescribed, first) = pull_under_gravity(&m, [0.03, 0.04, -0.02], NewtonOptions::default());
+    let again = Hyperelastic::new(&m, true, NewtonOptions::default())
+        .unwrap()
+        .solve(Load {
+            start: &first.displacement,
+            prescribed: &prescribed,
+            body_from: 1.0,
+            body_to: 1.0,
+        })
+        .unwrap();
+    // The field is where the path ends, not how it got there: a second solve from it moves nothing
+    // beyond the convergence tolerance's share of the field.
+    let scale = largest(first.displacement.iter().flatten().copied());
+    let moved = first
+        .displacement
+        .iter()
+        .zip(&again.displacement)
+        .flat_map(|(a, b)| (0..3).map(move |k| (a[k] - b[k]).abs()))
+        .fold(0.0, f64::max);
+    assert!(moved <= 1e-9 * scale, "moved {moved:e} m; {:?}", again.stats);
 }
 
 #[test]

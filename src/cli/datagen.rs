@@ -87,6 +87,7 @@ pub fn run(args: DatagenArgs, mesh: &TetMesh, cache: PathBuf) -> anyhow::Result<
             max_newton_iterations: args.max_newton_iterations,
             max_step_cuts: args.max_step_cuts,
         }),
+        volumetric_law: matches!(args.regime, Regime::Nonlinear).then_some(mesh.config.volumetric_law),
         shard: args.shard,
     };
     let bar = indicatif::ProgressBar::new(0).with_style(

@@ -8,7 +8,7 @@ use anyhow::{Context, bail};
 use nak::data::dataset;
 use nak::data::dcm::{self, SampleError, Summary};
 use nak::data::force_error::{self, ForceSummary, GraspForceError};
-use nak::engine::{Engine, Forces, Request};
+use nak::engine::{Engine, Forces, Request, VOLUMETRIC_LAW_KEY};
 use rayon::prelude::*;
 
 #[derive(clap::Args)]
@@ -128,8 +128,39 @@ pub fn dataset_for(dir: &Path, engine: &Engine) -> anyhow::Result<dataset::Datas
     Ok(info)
 }
 
+/// Refuses to score `model` on nonlinear data solved under another hyperelastic law than the
+/// model's answers (a network's training data, green-tangent's preload) or the mesh's model.toml.
+fn check_law(info: &dataset::DatasetInfo, data: &Path, engine: &Engine, model: &str) -> anyhow::Result<()> {
+    let Some(law) = info.volumetric_law else {
+        return Ok(());
+    };
+    let configured = engine.mesh().config.volumetric_law;
+    if configured != law {
+        bail!(
+            "{} was solved under the volumetric law {law}, but the mesh's model.toml sets {configured}: \
+             fields of two laws are not compared (set [hyperelastic] volumetric_law to match, or remake the data)",
+            data.display()
+        );
+    }
+    let model_law = engine
+        .models()
+        .find(|m| m.name == model)
+        .and_then(|m| m.metadata.get(VOLUMETRIC_LAW_KEY));
+    if let Some(model_law) = model_law
+        && model_law != law.name()
+    {
+        bail!(
+            "model {model} was made under the volumetric law {model_law}, but {} was solved under {law}: \
+             retrain the model on data of this law",
+            data.display()
+        );
+    }
+    Ok(())
+}
+
 pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
     let info = dataset_for(&args.data, engine)?;
+    check_law(&info, &args.data, engine, &args.model)?;
     let mesh = engine.mesh();
     let mut errors: BTreeMap<String, Vec<SampleError>> = BTreeMap::new();
     let mut force_errors: BTreeMap<String, Vec<GraspForceError>> = BTreeMap::new();

@@ -18,7 +18,7 @@ use super::shard::Shard;
 use super::{GraspSampler, SamplingError};
 use crate::engine::Grasp;
 use crate::fem::nonlinear::SolveStats;
-use crate::mesh::TetMesh;
+use crate::mesh::{TetMesh, VolumetricLaw};
 
 #[derive(Debug, thiserror::Error)]
 pub enum DatasetError {
@@ -66,6 +66,10 @@ pub struct DatasetInfo {
     /// Limits the nonlinear solver ran with (absent in linear datasets).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub solver: Option<SolverLimits>,
+    /// The hyperelastic law's volumetric term the fields were solved under (nonlinear datasets;
+    /// [`read_info`] fills in the law of nonlinear datasets made before it was recorded).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub volumetric_law: Option<VolumetricLaw>,
     /// Which shard of the dataset this directory holds (absent in a whole or joined dataset).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub shard: Option<Shard>,
@@ -254,7 +258,12 @@ pub fn write_chunk(
 pub fn read_info(dir: &Path) -> Result<DatasetInfo, DatasetError> {
     let path = dir.join("dataset.json");
     let text = std::fs::read_to_string(&path).map_err(io(&path))?;
-    serde_json::from_str(&text).map_err(|e| format(&path, e))
+    let mut info: DatasetInfo = serde_json::from_str(&text).map_err(|e| format(&path, e))?;
+    // Nonlinear data from before the law was recorded was solved under (κ/2)(J − 1)².
+    if info.regime == "nonlinear" && info.volumetric_law.is_none() {
+        info.volumetric_law = Some(VolumetricLaw::JMinusOneSquared);
+    }
+    Ok(info)
 }
 
 pub fn write_info(dir: &Path, info: &DatasetInfo) -> Result<(), DatasetError> {

@@ -45,7 +45,8 @@ pub fn join(shards: &[PathBuf], out: &Path) -> Result<Joined, DatasetError> {
                     &dir.join("dataset.json"),
                     format!(
                         "shard {shard} belongs to another dataset than {} ({}); shards join only when \
-                         mesh, regime, seed, sizes, chunk size, solver settings and nak version agree",
+                         mesh, regime, seed, sizes, chunk size, solver settings, volumetric law and nak \
+                         version agree",
                         expected_dir.display(),
                         dataset::differences(&unsharded, expected)
                     ),

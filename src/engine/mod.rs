@@ -11,6 +11,7 @@ use std::time::Instant;
 pub use grasp::Grasp;
 pub use model::{
     Answer, DeformationModel, Forces, KelvinletModel, ModelError, ModelInfo, ModelKind, StageTiming, Target,
+    VOLUMETRIC_LAW_KEY,
 };
 
 use crate::mesh::TetMesh;

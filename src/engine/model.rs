@@ -28,6 +28,10 @@ pub enum Forces {
     Estimate,
 }
 
+/// The metadata key naming the hyperelastic law a nonlinear model's answers were made under
+/// (`ln-j-squared`, …): a trained network's data, or green-tangent's own preload.
+pub const VOLUMETRIC_LAW_KEY: &str = "volumetric_law";
+
 /// What `ListModels` says about a model.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ModelInfo {

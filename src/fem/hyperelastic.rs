@@ -1,12 +1,13 @@
 //! Compressible Mooney–Rivlin (docs/design.md §4):
-//! `W = C10(Ī1 − 3) + C01(Ī2 − 3) + (κ/2)(J − 1)²`, `Ī1 = J^{-2/3} I1`, `Ī2 = J^{-4/3} I2`,
-//! with the first Piola–Kirchhoff stress `P = ∂W/∂F` and the tangent `A = ∂²W/∂F∂F` in closed form.
+//! `W = C10(Ī1 − 3) + C01(Ī2 − 3) + U(J)`, `Ī1 = J^{-2/3} I1`, `Ī2 = J^{-4/3} I2`, with the volumetric
+//! term `U = (κ/2)(ln J)²` (or, for data made before the change, `(κ/2)(J − 1)²`), and the first
+//! Piola–Kirchhoff stress `P = ∂W/∂F` and the tangent `A = ∂²W/∂F∂F` in closed form.
 //!
 //! Tensors are indexed by (row i, column J) of F → `3i + J`; `A[3i+J][3k+L] = ∂P_iJ/∂F_kL`.
 
 use nalgebra::{Matrix3, Vector3};
 
-use crate::mesh::Material;
+use crate::mesh::{Material, VolumetricLaw};
 
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MooneyRivlin {
@@ -14,20 +15,39 @@ pub struct MooneyRivlin {
     pub c01: f64,
     /// Bulk modulus κ.
     pub kappa: f64,
+    pub volumetric: VolumetricLaw,
 }
 
 pub type Tangent = [[f64; 9]; 9];
 
 impl MooneyRivlin {
     /// κ from Poisson's ratio and the initial shear modulus μ0 = 2(C10 + C01), as docs/design.md §4 fixes.
-    pub fn new(c10: f64, c01: f64, poisson_ratio: f64) -> Self {
+    pub fn new(c10: f64, c01: f64, poisson_ratio: f64, volumetric: VolumetricLaw) -> Self {
         let mu0 = 2.0 * (c10 + c01);
         let kappa = 2.0 * mu0 * (1.0 + poisson_ratio) / (3.0 * (1.0 - 2.0 * poisson_ratio));
-        Self { c10, c01, kappa }
+        Self {
+            c10,
+            c01,
+            kappa,
+            volumetric,
+        }
     }
 
-    pub fn from_material(m: &Material) -> Self {
-        Self::new(m.c10, m.c01, m.poisson_ratio)
+    pub fn from_material(m: &Material, volumetric: VolumetricLaw) -> Self {
+        Self::new(m.c10, m.c01, m.poisson_ratio, volumetric)
+    }
+
+    /// U(J), J U′(J) and J² U″(J): the volumetric term and the two scalars its stress
+    /// (`J U′ F⁻ᵀ`) and tangent (`(J U′ + J² U″) H⊗H − J U′ H_iL H_kJ`) need.
+    fn volumetric(&self, j: f64) -> (f64, f64, f64) {
+        let k = self.kappa;
+        match self.volumetric {
+            VolumetricLaw::LnJSquared => {
+                let ln_j = j.ln();
+                (0.5 * k * ln_j * ln_j, k * ln_j, k * (1.0 - ln_j))
+            }
+            VolumetricLaw::JMinusOneSquared => (0.5 * k * (j - 1.0).powi(2), k * (j - 1.0) * j, k * j * j),
+        }
     }
 
     /// The small-strain shear modulus and Lamé λ this law linearizes to.
@@ -44,12 +64,12 @@ impl MooneyRivlin {
         }
         let (i1, i2) = invariants(&(f.transpose() * f));
         let j23 = inverse_cube_root_squared(j);
-        Some(self.energy_of(j, j23, i1, i2))
+        Some(self.isochoric_energy(j23, i1, i2) + self.volumetric(j).0)
     }
 
-    /// W from J, J^{-2/3} and the invariants.
-    fn energy_of(&self, j: f64, j23: f64, i1: f64, i2: f64) -> f64 {
-        self.c10 * (j23 * i1 - 3.0) + self.c01 * (j23 * j23 * i2 - 3.0) + 0.5 * self.kappa * (j - 1.0).powi(2)
+    /// W's isochoric part from J^{-2/3} and the invariants.
+    fn isochoric_energy(&self, j23: f64, i1: f64, i2: f64) -> f64 {
+        self.c10 * (j23 * i1 - 3.0) + self.c01 * (j23 * j23 * i2 - 3.0)
     }
 
     /// The first Piola–Kirchhoff stress; `None` when J ≤ 0.
@@ -81,15 +101,16 @@ impl MooneyRivlin {
         let (s1, a1) = (self.c10 * j23, -2.0 / 3.0);
         let (s2, a2) = (self.c01 * j23 * j23, -4.0 / 3.0);
         let d = 2.0 * (i1 * f - f * c);
-        let stress = self.kappa * (j - 1.0) * j * h + s1 * (2.0 * f + a1 * i1 * h) + s2 * (d + a2 * i2 * h);
+        let (u, ju1, jju2) = self.volumetric(j);
+        let stress = ju1 * h + s1 * (2.0 * f + a1 * i1 * h) + s2 * (d + a2 * i2 * h);
         let tangent = TangentTerms {
             h,
             f: *f,
             d,
             c,
             b,
-            hh: self.kappa * j * (2.0 * j - 1.0) + s1 * a1 * a1 * i1 + s2 * a2 * a2 * i2,
-            hh_swapped: self.kappa * j * (j - 1.0) + s1 * a1 * i1 + s2 * a2 * i2,
+            hh: ju1 + jju2 + s1 * a1 * a1 * i1 + s2 * a2 * a2 * i2,
+            hh_swapped: ju1 + s1 * a1 * i1 + s2 * a2 * i2,
             hf: 2.0 * s1 * a1,
             hd: s2 * a2,
             ff: 4.0 * s2,
@@ -98,7 +119,7 @@ impl MooneyRivlin {
             two_s2: 2.0 * s2,
         };
         Some(Response {
-            energy: self.energy_of(j, j23, i1, i2),
+            energy: self.isochoric_energy(j23, i1, i2) + u,
             stress,
             tangent,
         })

@@ -54,6 +54,15 @@ pub struct NewtonOptions {
 const KRYLOV_TOLERANCE: f64 = 1e-2;
 /// The loosest tolerance a correction far from the solution is solved to (see [`Forcing`]).
 const KRYLOV_TOLERANCE_FAR: f64 = 0.3;
+/// Steps stop this fraction of the way to where the first element would collapse (J = 0): the
+/// barrier in the energy keeps accepted states away from it, and a step that ends at the root
+/// would leave an element with no volume.
+const FEASIBLE_FRACTION: f64 = 0.9;
+/// The feasibility search looks this far along a direction; no step is longer than 1.
+const FEASIBLE_HORIZON: f64 = 2.0;
+/// A predictor shorter than this fraction of its load step means an element is collapsing
+/// already: the step is cut instead of crawling.
+const MIN_PREDICTOR_FRACTION: f64 = 1e-4;
 /// Shifted factorizations of one indefinite tangent before the load step is cut.
 const MAX_SHIFTS: usize = 8;
 /// Conjugate-gradient iterations before an old factor is given up for a new one.
@@ -98,6 +107,10 @@ pub struct SolveStats {
     pub newton_iterations: usize,
     /// Trial states rejected because an element inverted (J ≤ 0).
     pub inverted_trials: usize,
+    /// Predictors shortened to keep every element clear of inversion (the load step ends where the
+    /// shortened predictor lands; not a failure).
+    #[serde(default)]
+    pub shortened_predictors: usize,
     /// Tangents that were not positive definite and were factorized with a diagonal shift.
     pub shifted_factorizations: usize,
     /// Numeric Cholesky factorizations of the tangent (a shifted retry counts again).
@@ -263,7 +276,7 @@ impl Hyperelastic {
     pub fn new(mesh: &TetMesh, gravity: bool, options: NewtonOptions) -> Result<Self, FemError> {
         let laws: Vec<MooneyRivlin> = super::region_materials(mesh)?
             .into_iter()
-            .map(MooneyRivlin::from_material)
+            .map(|m| MooneyRivlin::from_material(m, mesh.config.volumetric_law))
             .collect();
         let fixed = mesh.node_sets.get("fixed").cloned().unwrap_or_default();
         let mut free = vec![true; mesh.node_count()];
@@ -642,29 +655,39 @@ impl Hyperelastic {
         Err(StepFailure::NotConverged)
     }
 
-    /// Takes the largest fraction 1, ½, ¼, … of the predictor that inverts no element, each
-    /// halving counted as a step cut; returns the fraction.
+    /// Moves `u` along the predictor as far as every element stays well clear of inversion: the
+    /// whole way, or [`FEASIBLE_FRACTION`] of the way to where the first element would collapse
+    /// (the predictor is linear in the load increment, so the load step ends there and no new
+    /// solve is needed). Returns the fraction taken.
     fn predict(&self, u: &mut [[f64; 3]], direction: &[f64], work: &mut Work) -> Result<f64, StepFailure> {
-        let base = u.to_vec();
-        let mut fraction = 1.0;
-        loop {
-            self.apply(u, direction, fraction);
-            if timed(&mut work.profile.line_search, || self.is_admissible(u)) {
-                return Ok(fraction);
-            }
-            u.copy_from_slice(&base);
+        let limit = timed(&mut work.profile.line_search, || self.feasible_length(u, direction));
+        let fraction = (FEASIBLE_FRACTION * limit).min(1.0);
+        if fraction < MIN_PREDICTOR_FRACTION {
             work.stats.inverted_trials += 1;
-            work.stats.step_cuts += 1;
-            if work.stats.step_cuts > self.options.max_step_cuts {
-                return Err(StepFailure::Inverted);
-            }
-            fraction /= 2.0;
+            return Err(StepFailure::Inverted);
         }
+        if fraction < 1.0 {
+            work.stats.shortened_predictors += 1;
+        }
+        self.apply(u, direction, fraction);
+        Ok(fraction)
     }
 
-    /// Whether no element of `u` is inverted.
-    fn is_admissible(&self, u: &[[f64; 3]]) -> bool {
-        (0..self.tets.len()).all(|t| self.deformation_gradient(t, u).determinant() > 0.0)
+    /// The largest step length α ≤ [`FEASIBLE_HORIZON`] along `direction` (in unknowns) before any
+    /// element's det(F + α ΔF) reaches zero, or infinity when none does within it: a cubic in α per
+    /// element (as libigl's flip-avoiding line search).
+    fn feasible_length(&self, u: &[[f64; 3]], direction: &[f64]) -> f64 {
+        let mut step = vec![[0.0; 3]; self.nodes];
+        for (d, &(n, c)) in self.dof_owner.iter().enumerate() {
+            step[n as usize][c as usize] = direction[d];
+        }
+        (0..self.tets.len())
+            .filter_map(|t| {
+                let f = self.deformation_gradient(t, u);
+                let df = self.deformation_gradient(t, &step) - Matrix3::identity();
+                first_root_of_determinant(&f, &df, FEASIBLE_HORIZON)
+            })
+            .fold(f64::INFINITY, f64::min)
     }
 
     /// Applies the prescribed DOFs to the tangent: their rows and columns become identity, and the
@@ -805,7 +828,8 @@ impl Hyperelastic {
         work: &mut Work,
     ) -> Result<f64, StepFailure> {
         let base = u.to_vec();
-        let mut length = 1.0;
+        let limit = timed(&mut work.profile.line_search, || self.feasible_length(u, direction));
+        let mut length = (FEASIBLE_FRACTION * limit).min(1.0);
         // Near convergence the energy change sinks below round-off: accept changes within it.
         let tolerance = self.energy_noise;
         for _ in 0..12 {
@@ -856,9 +880,92 @@ fn scatter_element_tangent(a: &TangentTerms, g: &[Vec3; 4], volume: f64, scatter
     }
 }
 
+/// The smallest α in (0, `horizon`] at which det(F + α ΔF) ≤ 0, if any, for det F > 0, from below
+/// (det is still positive there). det(F + αΔF) = det F + α⟨cof F, ΔF⟩ + α²⟨F, cof ΔF⟩ + α³ det ΔF;
+/// between the roots of its derivative it is monotone, so the first such piece whose right end is
+/// not positive holds the root, found by bisection.
+fn first_root_of_determinant(f: &Matrix3<f64>, df: &Matrix3<f64>, horizon: f64) -> Option<f64> {
+    let cofactor = |m: &Matrix3<f64>| {
+        Matrix3::from_fn(|i, j| {
+            let (r0, r1) = ((i + 1) % 3, (i + 2) % 3);
+            let (c0, c1) = ((j + 1) % 3, (j + 2) % 3);
+            m[(r0, c0)] * m[(r1, c1)] - m[(r0, c1)] * m[(r1, c0)]
+        })
+    };
+    let c = [
+        f.determinant(),
+        cofactor(f).component_mul(df).sum(),
+        cofactor(df).component_mul(f).sum(),
+        df.determinant(),
+    ];
+    let p = |a: f64| c[0] + a * (c[1] + a * (c[2] + a * c[3]));
+    // Critical points: 3 c3 a² + 2 c2 a + c1 = 0.
+    let mut ends: Vec<f64> = quadratic_roots(3.0 * c[3], 2.0 * c[2], c[1])
+        .into_iter()
+        .filter(|&a| a > 0.0 && a < horizon)
+        .collect();
+    ends.sort_by(f64::total_cmp);
+    ends.push(horizon);
+    let mut left = 0.0;
+    for right in ends {
+        if p(right) <= 0.0 {
+            let (mut low, mut high) = (left, right);
+            for _ in 0..60 {
+                let mid = 0.5 * (low + high);
+                if p(mid) > 0.0 {
+                    low = mid;
+                } else {
+                    high = mid;
+                }
+            }
+            return Some(low);
+        }
+        left = right;
+    }
+    None
+}
+
+/// The real roots of a x² + b x + c (of b x + c when a vanishes against b and c).
+fn quadratic_roots(a: f64, b: f64, c: f64) -> Vec<f64> {
+    if a.abs() <= 1e-14 * (b.abs() + c.abs()) {
+        return if b == 0.0 { Vec::new() } else { vec![-c / b] };
+    }
+    let discriminant = b * b - 4.0 * a * c;
+    if discriminant < 0.0 {
+        return Vec::new();
+    }
+    // The stable pair: no cancellation between b and the root of the discriminant.
+    let q = -0.5 * (b + b.signum() * discriminant.sqrt());
+    if q == 0.0 {
+        return vec![0.0];
+    }
+    vec![q / a, c / q]
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_first_root_of_a_determinant_is_where_the_element_collapses() {
+        // Compressing x by α: det = 1 − α, collapsing at α = 1.
+        let squash = Matrix3::from_diagonal(&Vector3::new(-1.0, 0.0, 0.0));
+        let at = first_root_of_determinant(&Matrix3::identity(), &squash, 2.0).unwrap();
+        assert!((at - 1.0).abs() < 1e-12 && at <= 1.0, "{at}");
+        // Two axes at different rates: (1 − 2α)(1 − α/2) first vanishes at α = ½.
+        let two = Matrix3::from_diagonal(&Vector3::new(-2.0, -0.5, 0.0));
+        let at = first_root_of_determinant(&Matrix3::identity(), &two, 2.0).unwrap();
+        assert!((at - 0.5).abs() < 1e-12, "{at}");
+        // Growing first, then collapsing: (1 + α)(1 − 1.5α) has its critical point before its root.
+        let late = Matrix3::from_diagonal(&Vector3::new(1.0, -1.5, 0.0));
+        let at = first_root_of_determinant(&Matrix3::identity(), &late, 2.0).unwrap();
+        assert!((at - 2.0 / 3.0).abs() < 1e-12, "{at}");
+        // Stretching and rotating never collapses.
+        let stretch = Matrix3::new(0.5, 0.2, 0.0, -0.2, 0.5, 0.0, 0.0, 0.0, 1.0);
+        assert_eq!(first_root_of_determinant(&Matrix3::identity(), &stretch, 2.0), None);
+        // Beyond the horizon is not looked at.
+        assert_eq!(first_root_of_determinant(&Matrix3::identity(), &squash, 0.5), None);
+    }
 
     #[test]
     fn forcing_is_loose_far_from_the_solution_and_tight_near_it() {

@@ -11,11 +11,13 @@ const MAGIC: &[u8; 8] = b"NAKPRE01";
 /// Magic, node count, mesh hash, key hash.
 const HEADER: usize = 8 + 8 + 64 + 64;
 
-/// What the preloaded state depends on besides the geometry: Mooney–Rivlin constants, body force and
-/// the fixed set.
+/// What the preloaded state depends on besides the geometry: Mooney–Rivlin constants and volumetric
+/// law, body force and the fixed set. A cache made under another law has another key, so it is
+/// never read for this one.
 pub fn hyperelastic_hash(mesh: &TetMesh) -> String {
     let mut h = blake3::Hasher::new();
-    h.update(b"nak-hyperelastic-v1");
+    h.update(b"nak-hyperelastic-v2");
+    h.update(mesh.config.volumetric_law.name().as_bytes());
     for (name, m) in &mesh.config.materials {
         h.update(name.as_bytes());
         for v in [m.c10, m.c01, m.poisson_ratio] {

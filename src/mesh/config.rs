@@ -4,7 +4,7 @@
 
 use std::collections::BTreeMap;
 
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
 use super::MeshError;
 
@@ -40,6 +40,40 @@ pub struct Material {
     pub c01: f64,
 }
 
+/// The volumetric term U(J) of the hyperelastic strain energy (docs/design.md §4). Everything made
+/// with the law records it (preload and Green's-function caches, datasets, model manifests), so that
+/// fields of two laws are never mixed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum VolumetricLaw {
+    /// `(κ/2)(ln J)²`: a barrier as J → 0 (FEBio's default for its uncoupled Mooney–Rivlin).
+    #[default]
+    LnJSquared,
+    /// `(κ/2)(J − 1)²`: nak's law before 2026-11-26, finite at J = 0, so elements can invert under
+    /// deep pushes. Nonlinear datasets and models that name no law were made with it.
+    JMinusOneSquared,
+}
+
+impl VolumetricLaw {
+    /// The name model.toml, dataset.json and manifests use.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::LnJSquared => "ln-j-squared",
+            Self::JMinusOneSquared => "j-minus-one-squared",
+        }
+    }
+}
+
+impl std::fmt::Display for VolumetricLaw {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let formula = match self {
+            Self::LnJSquared => "(κ/2)(ln J)²",
+            Self::JMinusOneSquared => "(κ/2)(J − 1)²",
+        };
+        write!(f, "{} {formula}", self.name())
+    }
+}
+
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Body {
     pub density: f64,
@@ -70,6 +104,8 @@ pub struct MeshConfig {
     pub prior: PriorParams,
     pub body: Body,
     pub materials: BTreeMap<String, Material>,
+    /// The hyperelastic law's volumetric term (`[hyperelastic] volumetric_law`).
+    pub volumetric_law: VolumetricLaw,
     /// VTK region label → region name (`label` in `[regions.NAME]`).
     pub region_labels: BTreeMap<i32, String>,
     pub sampling: Sampling,
@@ -101,6 +137,15 @@ struct RawConfig {
     body: RawBody,
     regions: BTreeMap<String, RawMaterial>,
     sampling: RawSampling,
+    #[serde(default)]
+    hyperelastic: RawHyperelastic,
+}
+
+#[derive(Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+struct RawHyperelastic {
+    #[serde(default)]
+    volumetric_law: VolumetricLaw,
 }
 
 #[derive(Deserialize)]
@@ -214,6 +259,7 @@ impl RawConfig {
                 gravity: self.body.gravity_m_s2,
             },
             materials,
+            volumetric_law: self.hyperelastic.volumetric_law,
             sampling: Sampling {
                 displacement_min: s.displacement_min_mm.map(|v| v * MM),
                 displacement_max: s.displacement_max_mm.map(|v| v * MM),

@@ -18,7 +18,7 @@ pub mod vtk;
 
 use std::collections::{BTreeMap, HashMap};
 
-pub use config::{Body, GraspRegion, Material, MeshConfig, PriorParams, Sampling};
+pub use config::{Body, GraspRegion, Material, MeshConfig, PriorParams, Sampling, VolumetricLaw};
 pub use source::{EMBEDDED_NAME, MeshSource, config_text, load};
 use topology::{Vec3, fmt_point, tet_volume};
 

@@ -5,7 +5,9 @@ use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::Instant;
 
-use crate::engine::{Answer, DeformationModel, Forces, ModelError, ModelInfo, ModelKind, StageTiming, Target};
+use crate::engine::{
+    Answer, DeformationModel, Forces, ModelError, ModelInfo, ModelKind, StageTiming, Target, VOLUMETRIC_LAW_KEY,
+};
 use crate::fem::{GreenError, GreenFunctions, Stiffness};
 use crate::mesh::TetMesh;
 use crate::prior::{InteractionPoints, Workspace};
@@ -38,12 +40,15 @@ impl GreenModel {
                  force from the preloaded state, exact for small grasps",
             ),
         };
-        let metadata = BTreeMap::from([
+        let mut metadata = BTreeMap::from([
             ("description".to_owned(), description.to_owned()),
             ("candidate_nodes".to_owned(), green.candidates().len().to_string()),
             ("forces".to_owned(), forces_text.to_owned()),
             ("cache".to_owned(), green.path.display().to_string()),
         ]);
+        if stiffness == Stiffness::PreloadTangent {
+            metadata.insert(VOLUMETRIC_LAW_KEY.into(), mesh.config.volumetric_law.name().into());
+        }
         Self {
             info: ModelInfo {
                 name: stiffness.model_name().to_owned(),

@@ -5,7 +5,7 @@ use std::collections::BTreeMap;
 use serde::Deserialize;
 
 use super::ModelLoadError;
-use crate::mesh::{PriorParams, TetMesh};
+use crate::mesh::{PriorParams, TetMesh, VolumetricLaw};
 
 /// The prior a model is composed with: added to a residual network's output, read by a network that
 /// takes the prior as input.
@@ -120,6 +120,10 @@ pub struct ModelSection {
     pub inputs: Vec<Channel>,
     #[serde(default)]
     pub description: String,
+    /// The hyperelastic law of the data a nonlinear model was trained on (see
+    /// [`Manifest::volumetric_law`]).
+    #[serde(default)]
+    pub volumetric_law: Option<VolumetricLaw>,
 }
 
 #[derive(Debug, Clone, PartialEq, Deserialize)]
@@ -134,6 +138,12 @@ pub struct MeshSection {
 const REQUIRED: [Channel; 3] = [Channel::Position, Channel::Displacement, Channel::Active];
 
 impl Manifest {
+    /// The law a nonlinear model's training data was solved under: the manifest's, or for models
+    /// exported before manifests named it, (κ/2)(J − 1)². `None` for linear models.
+    pub fn volumetric_law(&self) -> Option<VolumetricLaw> {
+        (self.model.regime == "nonlinear").then(|| self.model.volumetric_law.unwrap_or(VolumetricLaw::JMinusOneSquared))
+    }
+
     pub fn parse(text: &str, origin: &str) -> Result<Self, ModelLoadError> {
         let manifest: Manifest = toml::from_str(text).map_err(|e| ModelLoadError::new(origin, e.to_string()))?;
         let inputs = &manifest.model.inputs;
@@ -221,5 +231,40 @@ impl Manifest {
             ));
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn manifest(regime: &str, law: &str) -> Manifest {
+        let text = format!(
+            "[model]\nname = \"m\"\nmode = \"direct\"\nmethod = \"base\"\nregime = \"{regime}\"\n{law}\
+             inputs = [\"interaction\"]\n[mesh]\nname = \"box\"\ncontent_hash = \"0\"\nnode_count = 1\n\
+             [prior]\npoisson_ratio = 0.45\nepsilon_m = 0.01\nlambda = 0.001\n"
+        );
+        Manifest::parse(&text, "manifest.toml").unwrap()
+    }
+
+    #[test]
+    fn a_nonlinear_model_names_its_law_and_one_that_does_not_was_made_under_the_old_one() {
+        let law = "volumetric_law = \"ln-j-squared\"\n";
+        assert_eq!(
+            manifest("nonlinear", law).volumetric_law(),
+            Some(VolumetricLaw::LnJSquared)
+        );
+        assert_eq!(
+            manifest("nonlinear", "").volumetric_law(),
+            Some(VolumetricLaw::JMinusOneSquared)
+        );
+        assert_eq!(manifest("linear", "").volumetric_law(), None);
+        let unknown = "volumetric_law = \"neo-hookean\"\n";
+        let text = format!("[model]\nname = \"m\"\n{unknown}");
+        let error = Manifest::parse(&text, "manifest.toml").unwrap_err().to_string();
+        assert!(
+            error.contains("neo-hookean") && error.contains("ln-j-squared"),
+            "{error}"
+        );
     }
 }

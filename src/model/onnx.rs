@@ -16,7 +16,9 @@ use super::manifest::{Manifest, Mode, PriorModel};
 use super::prior::ModelPrior;
 use super::signature::{self, COEFFICIENTS, DISPLACEMENT, Input, Output, Signature};
 use super::{LoadContext, ModelLoadError};
-use crate::engine::{Answer, DeformationModel, Forces, ModelError, ModelInfo, ModelKind, StageTiming, Target};
+use crate::engine::{
+    Answer, DeformationModel, Forces, ModelError, ModelInfo, ModelKind, StageTiming, Target, VOLUMETRIC_LAW_KEY,
+};
 use crate::fem::Stiffness;
 use crate::mesh::TetMesh;
 use crate::prior::gpu::{GpuBasis, GpuError, GpuPrior};
@@ -178,6 +180,9 @@ impl OnnxModel {
             metadata.insert("basis.precision".into(), basis.precision().into());
         }
         metadata.insert("description".into(), manifest.model.description.clone());
+        if let Some(law) = manifest.volumetric_law() {
+            metadata.insert(VOLUMETRIC_LAW_KEY.into(), law.name().into());
+        }
         for (section, values) in [("metrics", &manifest.metrics), ("provenance", &manifest.provenance)] {
             for (k, v) in values {
                 metadata.insert(format!("{section}.{k}"), v.to_string().trim_matches('"').to_owned());

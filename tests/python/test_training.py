@@ -188,6 +188,33 @@ def test_an_interrupted_run_resumes_to_the_same_weights(coarse_data: Path, tmp_p
         Trainer(other, dataset, resumed, log=quiet)
 
 
+def test_a_run_is_not_resumed_on_data_of_another_volumetric_law(coarse_data: Path, tmp_path: Path) -> None:
+    def relabelled(law: str) -> Path:
+        """The coarse set as if solved under `law`: the labels are what training compares."""
+        copy = tmp_path / law
+        shutil.copytree(coarse_data, copy)
+        info = json.loads((copy / "dataset.json").read_text())
+        info.update(regime="nonlinear", volumetric_law=law)
+        (copy / "dataset.json").write_text(json.dumps(info))
+        return copy
+
+    config = parse_config(tiny_config(method="reg", steps=3), "tiny")
+    run = tmp_path / "run"
+    run.mkdir()
+    Trainer(config, open_dataset(relabelled("ln-j-squared")), run, log=quiet).run()
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["volumetric_law"] == "ln-j-squared"
+    older = open_dataset(relabelled("j-minus-one-squared"))
+    with pytest.raises(
+        TrainingInputError, match=r"under the volumetric law ln-j-squared; .* under j-minus-one-squared"
+    ):
+        Trainer(config, older, run, log=quiet)
+    with pytest.raises(
+        TrainingInputError, match=r"under the volumetric law ln-j-squared; .* under j-minus-one-squared"
+    ):
+        export(config, older, run, tmp_path / "models", log=quiet)
+
+
 @pytest.fixture(scope="module")
 def exported(coarse_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Path, Path]]:
     """A trained and an untrained +Res PointNet exported from the coarse dataset: (models root, runs)."""

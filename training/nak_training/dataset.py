@@ -24,6 +24,10 @@ SUBSETS = ("single", "multi")
 SPLITS = ("train", "val", "test")
 
 
+# The law of nonlinear datasets and models that name none (nak's before 2026-11-26).
+LEGACY_VOLUMETRIC_LAW = "j-minus-one-squared"
+
+
 @dataclass(frozen=True)
 class Mesh:
     """The geometry nak serves: node order, lumped volumes and surface normals are nak's own."""
@@ -85,6 +89,14 @@ class Dataset:
     @property
     def seed(self) -> int:
         return int(self.info["seed"])
+
+    @property
+    def volumetric_law(self) -> str | None:
+        """The hyperelastic law a nonlinear dataset was solved under (None for linear data). Nonlinear
+        data from before dataset.json recorded it was solved under (κ/2)(J − 1)²."""
+        if self.regime != "nonlinear":
+            return None
+        return str(self.info.get("volumetric_law", LEGACY_VOLUMETRIC_LAW))
 
     def chunk_count(self) -> int:
         total = int(self.info["single"]) + int(self.info["multi"])

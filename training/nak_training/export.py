@@ -21,7 +21,7 @@ import torch
 from safetensors.numpy import save_file
 
 from .config import TrainConfig
-from .dataset import Dataset, Sample
+from .dataset import LEGACY_VOLUMETRIC_LAW, Dataset, Sample
 from .errors import TrainingInputError
 from .reduced import InteractionGraph
 from .reduced_train import basis_ceiling, load_reduced
@@ -44,6 +44,13 @@ def export(config: TrainConfig, dataset: Dataset, run_dir: Path, out_root: Path,
     if not summary_path.is_file():
         raise TrainingInputError(summary_path, "missing: the run has not finished (train it to the end first)")
     summary = json.loads(summary_path.read_text())
+    trained_law = summary.get("volumetric_law", dataset.volumetric_law and LEGACY_VOLUMETRIC_LAW)
+    if trained_law != dataset.volumetric_law:
+        raise TrainingInputError(
+            summary_path,
+            f"the run was trained on data solved under the volumetric law {trained_law}; {dataset.root} was "
+            f"solved under {dataset.volumetric_law}: export with the dataset it was trained on",
+        )
     directory = out_root / config.name
     directory.mkdir(parents=True, exist_ok=True)
     for stale in ("manifest.toml", "model.onnx", BASIS_FILE):
@@ -63,6 +70,7 @@ def export(config: TrainConfig, dataset: Dataset, run_dir: Path, out_root: Path,
             "mode": config.mode,
             "method": config.method,
             "regime": dataset.regime,
+            **({"volumetric_law": dataset.volumetric_law} if dataset.volumetric_law else {}),
             "inputs": inputs,
             "description": config.description or describe(config),
         },

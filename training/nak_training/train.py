@@ -20,7 +20,7 @@ from typing import Any
 import torch
 
 from .config import TrainConfig
-from .dataset import Dataset, Mesh, Split
+from .dataset import LEGACY_VOLUMETRIC_LAW, Dataset, Mesh, Split
 from .errors import TrainingInputError
 from .kelvinlet import Prior, pad_points
 from .models import Grasped, SetNet, build, parameter_count
@@ -194,6 +194,13 @@ class Run:
             raise TrainingInputError(
                 path, f"was trained on mesh {checkpoint.get('mesh_hash')}; this dataset is {self.mesh.content_hash}"
             )
+        trained_law = checkpoint.get("volumetric_law", self.dataset.volumetric_law and LEGACY_VOLUMETRIC_LAW)
+        if trained_law != self.dataset.volumetric_law:
+            raise TrainingInputError(
+                path,
+                f"was trained on data solved under the volumetric law {trained_law}; {self.dataset.root} was "
+                f"solved under {self.dataset.volumetric_law}: data of two laws is not mixed (use a new run directory)",
+            )
         self.model.load_state_dict(checkpoint["model"])
         self.optimizer.load_state_dict(checkpoint["optimizer"])
         self.generator.set_state(checkpoint["generator"])
@@ -249,6 +256,7 @@ class Run:
             "steps": self.step,
             "training_time_s": round(self.elapsed, 1),
             "commit": commit,
+            "volumetric_law": self.dataset.volumetric_law,
             "train_samples": len(self.train),
             "val_samples": len(self.val),
             "parameters": parameter_count(self.model),
@@ -261,6 +269,7 @@ class Run:
         checkpoint = {
             "config": self.config.to_dict(),
             "mesh_hash": self.mesh.content_hash,
+            "volumetric_law": self.dataset.volumetric_law,
             "model": self.model.state_dict(),
             "optimizer": self.optimizer.state_dict(),
             "generator": self.generator.get_state(),
