@@ -448,6 +448,8 @@ fn data_of_two_volumetric_laws_is_never_mixed() {
     for (name, law) in [("new", "ln-j-squared"), ("old", "j-minus-one-squared")] {
         let info = std::fs::read_to_string(path(name).join("dataset.json")).unwrap();
         assert!(info.contains(&format!("\"volumetric_law\": \"{law}\"")), "{info}");
+        // The solver's settings are recorded beside the law.
+        assert!(info.contains("\"intermediate_tolerance\": 0.001"), "{info}");
     }
     // Each law has its own gravity preload in the cache: neither is read for the other.
     let preloads = std::fs::read_dir(&cache)

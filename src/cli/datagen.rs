@@ -41,6 +41,10 @@ pub struct DatagenArgs {
     /// Nonlinear: load-step halvings allowed before a sample is recorded as failed.
     #[arg(long, default_value_t = NewtonOptions::default().max_step_cuts)]
     max_step_cuts: usize,
+    /// Nonlinear: load steps before the last end at this residual, relative to the load (the last
+    /// one at 1e-6); looser means fewer Newton iterations on the way.
+    #[arg(long, default_value_t = NewtonOptions::default().intermediate_tolerance)]
+    intermediate_tolerance: f64,
     /// Make only shard I of N (0-based): the chunks c with c mod N = I, in a directory of its own
     /// (--out); `nak dataset join` assembles the N shard directories into the whole dataset.
     #[arg(long, value_name = "I/N")]
@@ -86,6 +90,7 @@ pub fn run(args: DatagenArgs, mesh: &TetMesh, cache: PathBuf) -> anyhow::Result<
         solver: matches!(args.regime, Regime::Nonlinear).then_some(SolverLimits {
             max_newton_iterations: args.max_newton_iterations,
             max_step_cuts: args.max_step_cuts,
+            intermediate_tolerance: args.intermediate_tolerance,
         }),
         volumetric_law: matches!(args.regime, Regime::Nonlinear).then_some(mesh.config.volumetric_law),
         shard: args.shard,
@@ -114,6 +119,7 @@ pub fn run(args: DatagenArgs, mesh: &TetMesh, cache: PathBuf) -> anyhow::Result<
             let options = NewtonOptions {
                 max_iterations: args.max_newton_iterations,
                 max_step_cuts: args.max_step_cuts,
+                intermediate_tolerance: args.intermediate_tolerance,
                 ..NewtonOptions::default()
             };
             let preloaded = Preloaded::load_or_compute(mesh, &cache, options)

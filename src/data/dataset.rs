@@ -17,7 +17,7 @@ use serde::{Deserialize, Serialize};
 use super::shard::Shard;
 use super::{GraspSampler, SamplingError};
 use crate::engine::Grasp;
-use crate::fem::nonlinear::SolveStats;
+use crate::fem::nonlinear::{NewtonOptions, SolveStats};
 use crate::mesh::{TetMesh, VolumetricLaw};
 
 #[derive(Debug, thiserror::Error)]
@@ -75,10 +75,17 @@ pub struct DatasetInfo {
     pub shard: Option<Shard>,
 }
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct SolverLimits {
     pub max_newton_iterations: usize,
     pub max_step_cuts: usize,
+    /// Absent in datasets made before it could be set: they used 1e-3.
+    #[serde(default = "default_intermediate_tolerance")]
+    pub intermediate_tolerance: f64,
+}
+
+fn default_intermediate_tolerance() -> f64 {
+    NewtonOptions::default().intermediate_tolerance
 }
 
 /// The fields in which two datasets' descriptions differ (`a` first), for refusals.
