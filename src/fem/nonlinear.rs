@@ -900,14 +900,18 @@ fn first_root_of_determinant(f: &Matrix3<f64>, df: &Matrix3<f64>, horizon: f64) 
     ];
     let p = |a: f64| c[0] + a * (c[1] + a * (c[2] + a * c[3]));
     // Critical points: 3 c3 a² + 2 c2 a + c1 = 0.
-    let mut ends: Vec<f64> = quadratic_roots(3.0 * c[3], 2.0 * c[2], c[1])
-        .into_iter()
-        .filter(|&a| a > 0.0 && a < horizon)
-        .collect();
-    ends.sort_by(f64::total_cmp);
-    ends.push(horizon);
+    // Called for every element at every step: the piece ends live on the stack.
+    let mut ends = [horizon; 3];
+    let mut inside = 0;
+    for a in quadratic_roots(3.0 * c[3], 2.0 * c[2], c[1]).into_iter().flatten() {
+        if a > 0.0 && a < horizon {
+            ends[inside] = a;
+            inside += 1;
+        }
+    }
+    ends[..inside].sort_by(f64::total_cmp);
     let mut left = 0.0;
-    for right in ends {
+    for &right in &ends[..=inside] {
         if p(right) <= 0.0 {
             let (mut low, mut high) = (left, right);
             for _ in 0..60 {
@@ -926,20 +930,20 @@ fn first_root_of_determinant(f: &Matrix3<f64>, df: &Matrix3<f64>, horizon: f64) 
 }
 
 /// The real roots of a x² + b x + c (of b x + c when a vanishes against b and c).
-fn quadratic_roots(a: f64, b: f64, c: f64) -> Vec<f64> {
+fn quadratic_roots(a: f64, b: f64, c: f64) -> [Option<f64>; 2] {
     if a.abs() <= 1e-14 * (b.abs() + c.abs()) {
-        return if b == 0.0 { Vec::new() } else { vec![-c / b] };
+        return [(b != 0.0).then(|| -c / b), None];
     }
     let discriminant = b * b - 4.0 * a * c;
     if discriminant < 0.0 {
-        return Vec::new();
+        return [None, None];
     }
     // The stable pair: no cancellation between b and the root of the discriminant.
     let q = -0.5 * (b + b.signum() * discriminant.sqrt());
     if q == 0.0 {
-        return vec![0.0];
+        return [Some(0.0), None];
     }
-    vec![q / a, c / q]
+    [Some(q / a), Some(c / q)]
 }
 
 #[cfg(test)]

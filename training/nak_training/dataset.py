@@ -98,6 +98,11 @@ class Dataset:
             return None
         return str(self.info.get("volumetric_law", LEGACY_VOLUMETRIC_LAW))
 
+    def law_of_run(self, record: dict[str, Any]) -> str | None:
+        """The law of the data a run's checkpoint or summary was trained on; runs from before they
+        recorded it are taken to share this dataset's regime, and so the legacy law if nonlinear."""
+        return record.get("volumetric_law", self.volumetric_law and LEGACY_VOLUMETRIC_LAW)
+
     def chunk_count(self) -> int:
         total = int(self.info["single"]) + int(self.info["multi"])
         size = int(self.info["chunk_size"])

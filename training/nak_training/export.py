@@ -21,7 +21,7 @@ import torch
 from safetensors.numpy import save_file
 
 from .config import TrainConfig
-from .dataset import LEGACY_VOLUMETRIC_LAW, Dataset, Sample
+from .dataset import Dataset, Sample
 from .errors import TrainingInputError
 from .reduced import InteractionGraph
 from .reduced_train import basis_ceiling, load_reduced
@@ -44,7 +44,7 @@ def export(config: TrainConfig, dataset: Dataset, run_dir: Path, out_root: Path,
     if not summary_path.is_file():
         raise TrainingInputError(summary_path, "missing: the run has not finished (train it to the end first)")
     summary = json.loads(summary_path.read_text())
-    trained_law = summary.get("volumetric_law", dataset.volumetric_law and LEGACY_VOLUMETRIC_LAW)
+    trained_law = dataset.law_of_run(summary)
     if trained_law != dataset.volumetric_law:
         raise TrainingInputError(
             summary_path,

@@ -20,7 +20,7 @@ from typing import Any
 import torch
 
 from .config import TrainConfig
-from .dataset import LEGACY_VOLUMETRIC_LAW, Dataset, Mesh, Split
+from .dataset import Dataset, Mesh, Split
 from .errors import TrainingInputError
 from .kelvinlet import Prior, pad_points
 from .models import Grasped, SetNet, build, parameter_count
@@ -194,7 +194,7 @@ class Run:
             raise TrainingInputError(
                 path, f"was trained on mesh {checkpoint.get('mesh_hash')}; this dataset is {self.mesh.content_hash}"
             )
-        trained_law = checkpoint.get("volumetric_law", self.dataset.volumetric_law and LEGACY_VOLUMETRIC_LAW)
+        trained_law = self.dataset.law_of_run(checkpoint)
         if trained_law != self.dataset.volumetric_law:
             raise TrainingInputError(
                 path,
