@@ -1,16 +1,16 @@
-//! Grasp forces end to end: over gRPC per model (exact, estimate, none), and in datasets.
+//! Grasp forces end to end: over gRPC per model (exact, estimate, learned, none), and in datasets.
 
 mod common;
 
 use std::path::Path;
 use std::sync::Arc;
 
-use common::models::{coarse, engine_with_models, two_graspers};
+use common::models::{coarse, copy_model, engine_with_models, load_error, ort, test_models, two_graspers};
 use common::server::TestServer;
 use nak::data::dataset;
-use nak::engine::Grasp;
+use nak::engine::{DeformationModel, Grasp};
 use nak::fem::{GreenFunctions, Stiffness, nodal_forces, solve_dirichlet};
-use nak::model::GreenModel;
+use nak::model::{GreenModel, LoadContext, OnnxModel};
 use nak::proto::v1 as pb;
 use nak::wire::grasp_message;
 
@@ -30,6 +30,24 @@ fn fem_grasp_forces(mesh: &nak::mesh::TetMesh, grasps: &[Grasp]) -> Vec<[f64; 3]
         .collect()
 }
 
+type Client = nak::proto::v1::deformation_client::DeformationClient<tonic::transport::Channel>;
+
+/// What ListModels says of the forces of `model`.
+async fn listed_forces(client: &mut Client, model: &str) -> i32 {
+    let listed = client.list_models(pb::ListModelsRequest {}).await.unwrap().into_inner();
+    listed.models.iter().find(|m| m.name == model).unwrap().forces
+}
+
+/// `model`'s answer to `grasps` over gRPC.
+async fn answer(client: &Client, model: &str, grasps: &[Grasp]) -> pb::PredictResponse {
+    let request = pb::PredictRequest {
+        model: model.into(),
+        grasps: grasps.iter().map(grasp_message).collect(),
+        ..Default::default()
+    };
+    client.clone().predict(request).await.unwrap().into_inner()
+}
+
 #[tokio::test]
 async fn each_model_answers_with_exact_estimated_or_no_forces_and_says_which() {
     let mesh = coarse();
@@ -44,30 +62,23 @@ async fn each_model_answers_with_exact_estimated_or_no_forces_and_says_which() {
     engine.add_model(Arc::new(GreenModel::new(&mesh, Arc::new(green))));
     let server = TestServer::with_engine(engine, 1 << 20).await;
     let mut client = server.client().await;
-    let listed = client
-        .list_models(pb::ListModelsRequest {})
-        .await
-        .unwrap()
-        .into_inner()
-        .models;
-    let forces_of = |name: &str| listed.iter().find(|m| m.name == name).unwrap().forces;
-    assert_eq!(forces_of("green-linear"), pb::Forces::Exact as i32);
-    assert_eq!(forces_of("kelvinlet"), pb::Forces::Estimate as i32);
-    assert_eq!(forces_of("mlp-residual"), pb::Forces::Unavailable as i32);
+    assert_eq!(
+        listed_forces(&mut client, "green-linear").await,
+        pb::Forces::Exact as i32
+    );
+    assert_eq!(
+        listed_forces(&mut client, "kelvinlet").await,
+        pb::Forces::Estimate as i32
+    );
+    assert_eq!(
+        listed_forces(&mut client, "mlp-residual").await,
+        pb::Forces::Unavailable as i32
+    );
 
     let grasps = two_graspers(&mesh);
     let truth = fem_grasp_forces(&mesh, &grasps);
-    let answer = |model: &str| {
-        let request = pb::PredictRequest {
-            model: model.into(),
-            grasps: grasps.iter().map(grasp_message).collect(),
-            ..Default::default()
-        };
-        let mut client = client.clone();
-        async move { client.predict(request).await.unwrap().into_inner().grasp_forces }
-    };
     // green-linear: the FEM's forces, to f32 on the wire.
-    let exact = answer("green-linear").await;
+    let exact = answer(&client, "green-linear", &grasps).await.grasp_forces;
     assert_eq!(exact.len(), 2);
     for (served, truth) in exact.iter().zip(&truth) {
         let served = [served.x as f64, served.y as f64, served.z as f64];
@@ -80,7 +91,7 @@ async fn each_model_answers_with_exact_estimated_or_no_forces_and_says_which() {
         }
     }
     // The Kelvinlet's estimate: one force per grasp, the library's to f32.
-    let estimate = answer("kelvinlet").await;
+    let estimate = answer(&client, "kelvinlet", &grasps).await.grasp_forces;
     let request = nak::engine::Request {
         grasps: grasps.clone(),
         ..Default::default()
@@ -91,7 +102,7 @@ async fn each_model_answers_with_exact_estimated_or_no_forces_and_says_which() {
         assert_eq!([served.x, served.y, served.z], library.map(|v| v as f32));
     }
     // A network gives none rather than a made-up value.
-    assert!(answer("mlp-residual").await.is_empty());
+    assert!(answer(&client, "mlp-residual", &grasps).await.grasp_forces.is_empty());
     // green-linear answers only where it has Green's functions, and says so elsewhere.
     let outside = pb::PredictRequest {
         model: "green-linear".into(),
@@ -157,4 +168,125 @@ fn datasets_store_each_grasps_fem_force() {
             }
         }
     }
+}
+
+/// tests/models/make_models.py's FORCE_GAINS: reduced-forces gives each point FORCE_GAINS ⊙ u_k.
+const FORCE_GAINS: [f64; 3] = [100.0, 200.0, 300.0];
+
+fn assert_close(served: &[[f64; 3]], expected: &[[f64; 3]], what: &str) {
+    assert_eq!(served.len(), expected.len(), "{what}");
+    for (s, e) in served.iter().zip(expected) {
+        let size = e.iter().map(|v| v * v).sum::<f64>().sqrt();
+        assert!(size > 0.0, "{what}: nothing to compare");
+        for k in 0..3 {
+            assert!((s[k] - e[k]).abs() <= 1e-5 * size, "{what}: {s:?} against {e:?}");
+        }
+    }
+}
+
+#[tokio::test]
+async fn a_network_with_a_forces_output_serves_each_grasps_sum_direct_or_on_its_priors_forces() {
+    let mesh = coarse();
+    let cache = tempfile::tempdir().unwrap();
+    let mut engine = engine_with_models(mesh.clone());
+    let green = Arc::new(GreenFunctions::load_or_compute(&mesh, Stiffness::Linear, cache.path(), |_, _| {}).unwrap());
+    engine.add_model(Arc::new(GreenModel::new(&mesh, green.clone())));
+    // The same graph on green-linear, its forces added to green-linear's own.
+    let (_root, dir) = copy_model("reduced-forces");
+    let manifest = std::fs::read_to_string(dir.join("manifest.toml")).unwrap();
+    std::fs::write(
+        dir.join("manifest.toml"),
+        manifest
+            .replace("[prior]\n", "[prior]\nmodel = \"green-linear\"\n")
+            .replace("name = \"reduced-forces\"", "name = \"reduced-forces-gl\"")
+            .replace(
+                "mode = \"direct\"\n",
+                "mode = \"residual\"\nmean_relative_error = 0.25\n",
+            ),
+    )
+    .unwrap();
+    let source = |_| Ok(green.clone());
+    let context = LoadContext {
+        ort_dylib: ort(),
+        green: Some(&source),
+    };
+    let on_green = OnnxModel::load(&dir, &mesh, context).unwrap();
+    assert_eq!(on_green.info().metadata["forces.mean_relative_error"], "0.25");
+    engine.add_model(Arc::new(on_green));
+    let server = TestServer::with_engine(engine, 1 << 20).await;
+    let mut client = server.client().await;
+    let learned_forces = pb::Forces::Learned as i32;
+    assert_eq!(listed_forces(&mut client, "reduced-forces").await, learned_forces);
+    assert_eq!(listed_forces(&mut client, "reduced-forces-gl").await, learned_forces);
+    assert_eq!(
+        listed_forces(&mut client, "reduced-residual").await,
+        pb::Forces::Unavailable as i32
+    );
+
+    let grasps = two_graspers(&mesh);
+    let vectors = |forces: &[pb::Vec3]| -> Vec<[f64; 3]> {
+        forces.iter().map(|f| [f.x as f64, f.y as f64, f.z as f64]).collect()
+    };
+    // Each grasp holds its nodes at one displacement: the sum over them is n_g FORCE_GAINS ⊙ u_g.
+    let learned: Vec<[f64; 3]> = grasps
+        .iter()
+        .map(|g| std::array::from_fn(|k| g.nodes.len() as f64 * FORCE_GAINS[k] * g.displacement[k]))
+        .collect();
+    let direct = answer(&client, "reduced-forces", &grasps).await;
+    assert_close(&vectors(&direct.grasp_forces), &learned, "direct");
+    // A forces output leaves the field as it was.
+    let field = answer(&client, "reduced-residual", &grasps).await.displacements;
+    assert_eq!(direct.displacements, field);
+    let prior = vectors(&answer(&client, "green-linear", &grasps).await.grasp_forces);
+    let residual: Vec<[f64; 3]> = prior
+        .iter()
+        .zip(&learned)
+        .map(|(p, l)| std::array::from_fn(|k| p[k] + l[k]))
+        .collect();
+    assert_close(
+        &vectors(&answer(&client, "reduced-forces-gl", &grasps).await.grasp_forces),
+        &residual,
+        "residual",
+    );
+    server.stop().await;
+}
+
+#[test]
+fn a_forces_output_of_the_wrong_shape_or_without_its_manifest_section_is_refused_at_load() {
+    let faulty = test_models().join("faulty");
+    let err = load_error(&faulty.join("forces-two-axes/forces-two-axes"));
+    assert!(
+        err.contains("\"forces\"") && err.contains("[batch, K, 3]") && err.contains("2]"),
+        "{err}"
+    );
+    let err = load_error(&faulty.join("forces-per-set/forces-per-set"));
+    assert!(err.contains("\"forces\"") && err.contains("[batch, K, 3]"), "{err}");
+    let (_root, dir) = copy_model("reduced-forces");
+    let manifest = std::fs::read_to_string(dir.join("manifest.toml")).unwrap();
+    let edit = |text: String| std::fs::write(dir.join("manifest.toml"), text).unwrap();
+    edit(manifest.replace("[forces]\nmode = \"direct\"\n", ""));
+    let err = load_error(&dir);
+    assert!(
+        err.contains("gives \"forces\"") && err.contains("no [forces] section"),
+        "{err}"
+    );
+    // Residual forces need a prior that has forces of its own to add them to.
+    edit(manifest.replace("mode = \"direct\"\n", "mode = \"residual\"\n"));
+    let err = load_error(&dir);
+    assert!(
+        err.contains("forces.mode = \"residual\"") && err.contains("Kelvinlet"),
+        "{err}"
+    );
+    let (_other, plain) = copy_model("reduced-residual");
+    let manifest = std::fs::read_to_string(plain.join("manifest.toml")).unwrap();
+    std::fs::write(
+        plain.join("manifest.toml"),
+        manifest + "\n[forces]\nmode = \"direct\"\n",
+    )
+    .unwrap();
+    let err = load_error(&plain);
+    assert!(
+        err.contains("no \"forces\" output") && err.contains("has a [forces] section"),
+        "{err}"
+    );
 }

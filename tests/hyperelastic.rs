@@ -7,10 +7,11 @@ mod common;
 use std::path::Path;
 
 use common::msh_fixture::Fixture;
+use faer::Mat;
 use nak::fem::hyperelastic::MooneyRivlin;
 use nak::fem::nonlinear::{Equilibrium, Hyperelastic, Load, NewtonOptions};
 use nak::fem::preload::Preloaded;
-use nak::fem::{GreenFunctions, Stiffness, solve_dirichlet};
+use nak::fem::{GreenFunctions, LinearSystem, Stiffness, solve_dirichlet};
 use nak::mesh::{MeshConfig, TetMesh, VolumetricLaw};
 use nak::prior::InteractionPoints;
 use nalgebra::Matrix3;
@@ -503,4 +504,88 @@ fn green_tangent_is_the_nonlinear_answer_to_first_order() {
     let ratio = errors[1].0 / errors[0].0;
     assert!((0.4..0.6).contains(&ratio), "not first order: {errors:?}");
     assert!(linear_error > 5.0 * tangent_error, "{errors:?}");
+}
+
+#[test]
+fn green_tangents_forces_are_the_tangent_stiffness_times_its_field() {
+    // green-tangent serves f = (G[S,S])⁻¹ u_S at the held nodes S. Against it: the same capacitance
+    // solve in f64 on a fresh factorization of the preload tangent, and K_t u of that f64 field taken
+    // element by element, as the central difference of the elements' internal forces about the
+    // preloaded state (no assembled matrix involved).
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/phantom-liver/liver-coarse.msh");
+    let m = nak::mesh::load(&nak::mesh::MeshSource::File(path)).unwrap();
+    let cache = tempfile::tempdir().unwrap();
+    let green = GreenFunctions::load_or_compute(&m, Stiffness::PreloadTangent, cache.path(), |_, _| {}).unwrap();
+    let preloaded = Preloaded::load_or_compute(&m, cache.path(), NewtonOptions::default()).unwrap();
+    let held: Vec<u32> = m.node_sets["grasp_03"].iter().take(6).copied().collect();
+    let moved = [[0.6e-3, 0.64e-3, -0.48e-3]; 6];
+    let mut served = Vec::new();
+    let mut unused = vec![0.0f32; 3];
+    green
+        .solve(&held, &moved, Some(&held[..1]), &mut unused, &mut served)
+        .unwrap();
+
+    let (tangent, _) = preloaded.solver.linearize(&preloaded.rest).unwrap();
+    let system = LinearSystem::from_stiffness(preloaded.solver.dofs().clone(), &tangent).unwrap();
+    let dofs = &system.dofs;
+    let k = 3 * held.len();
+    let mut columns = Mat::<f64>::zeros(dofs.len(), k);
+    for (j, &n) in held.iter().enumerate() {
+        for c in 0..3 {
+            columns[(dofs.get(n, c).unwrap(), 3 * j + c)] = 1.0;
+        }
+    }
+    system.solve_in_place(&mut columns);
+    let gss = nalgebra::DMatrix::from_fn(k, k, |r, c| columns[(dofs.get(held[r / 3], r % 3).unwrap(), c)]);
+    let u_s = nalgebra::DVector::from_iterator(k, moved.iter().flatten().copied());
+    let forces = gss.cholesky().unwrap().solve(&u_s);
+    let field: Vec<[f64; 3]> = (0..m.node_count() as u32)
+        .map(|n| {
+            std::array::from_fn(|c| {
+                dofs.get(n, c)
+                    .map_or(0.0, |d| (0..k).map(|j| columns[(d, j)] * forces[j]).sum())
+            })
+        })
+        .collect();
+
+    let step = 1e-2;
+    let shifted = |sign: f64| -> Vec<[f64; 3]> {
+        let state: Vec<[f64; 3]> = preloaded
+            .rest
+            .iter()
+            .zip(&field)
+            .map(|(r, u)| std::array::from_fn(|c| r[c] + sign * step * u[c]))
+            .collect();
+        preloaded.solver.linearize(&state).unwrap().1
+    };
+    let (plus, minus) = (shifted(1.0), shifted(-1.0));
+    let stiffness_times_field =
+        |n: u32| -> [f64; 3] { std::array::from_fn(|c| (plus[n as usize][c] - minus[n as usize][c]) / (2.0 * step)) };
+    let size = forces.norm();
+    for (j, &n) in held.iter().enumerate() {
+        let exact = [forces[3 * j], forces[3 * j + 1], forces[3 * j + 2]];
+        let element_wise = stiffness_times_field(n);
+        for c in 0..3 {
+            // f64 capacitance solve against the elements' K_t u: difference and solver error only.
+            assert!(
+                (element_wise[c] - exact[c]).abs() < 1e-6 * size,
+                "node {n}: {element_wise:?} against {exact:?}"
+            );
+            // Served: Green's functions stored in f32, so G[S,S] carries f32 rounding into the solve.
+            assert!(
+                (served[j][c] - exact[c]).abs() < 1e-3 * size,
+                "node {n}: served {:?} against {exact:?}",
+                served[j]
+            );
+        }
+    }
+    // Elsewhere the field is in equilibrium: K_t u vanishes at the free nodes.
+    let largest_free = (0..m.node_count() as u32)
+        .filter(|n| !held.contains(n) && dofs.get(*n, 0).is_some())
+        .map(|n| stiffness_times_field(n).iter().map(|v| v * v).sum::<f64>().sqrt())
+        .fold(0.0, f64::max);
+    assert!(
+        largest_free < 1e-6 * size,
+        "{largest_free} N at a free node, against {size} N held"
+    );
 }

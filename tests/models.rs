@@ -31,6 +31,7 @@ fn every_test_model_loads_and_is_listed_with_its_manifest() {
             "pointnet-direct",
             "pointnet-residual",
             "reduced-folded",
+            "reduced-forces",
             "reduced-residual",
             "reduced-residual-f16"
         ]

@@ -26,6 +26,8 @@ pub enum Forces {
     Exact,
     /// A closed-form estimate (the Kelvinlet's point loads).
     Estimate,
+    /// A network's `forces` output, trained on the finite elements' forces.
+    Learned,
 }
 
 /// The metadata key naming the hyperelastic law a nonlinear model's answers were made under

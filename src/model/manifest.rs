@@ -75,6 +75,25 @@ impl Method {
     }
 }
 
+/// How the served grasp forces are made from a graph's `forces` output.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ForcesMode {
+    /// The prior's own forces (green-linear's or green-tangent's (G[S,S])⁻¹ u_S) plus the output.
+    Residual,
+    /// The output alone.
+    Direct,
+}
+
+/// `[forces]`: present exactly when the graph gives `forces`; how they are served, and their error on
+/// the test split (reported by ListModels as `forces.*`).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+pub struct ForcesSection {
+    pub mode: ForcesMode,
+    #[serde(flatten)]
+    pub metrics: BTreeMap<String, toml::Value>,
+}
+
 /// Input channel groups, in the order they appear in `features`; or `interaction`, the K interaction
 /// points alone (rest position and prescribed displacement, docs/design.md §7).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
@@ -108,6 +127,9 @@ pub struct Manifest {
     pub metrics: BTreeMap<String, toml::Value>,
     #[serde(default)]
     pub provenance: BTreeMap<String, toml::Value>,
+    /// For graphs with a `forces` output.
+    #[serde(default)]
+    pub forces: Option<ForcesSection>,
 }
 
 #[derive(Debug, Clone, PartialEq, Deserialize)]
@@ -176,6 +198,27 @@ impl Manifest {
                     manifest.model.mode
                 ),
             ));
+        }
+        if let Some(forces) = &manifest.forces {
+            if !manifest.reads_interaction() {
+                return Err(ModelLoadError::new(
+                    origin,
+                    "[forces]: learned forces are per interaction point, so the model's inputs must be \
+                     [\"interaction\"]",
+                ));
+            }
+            let prior_has_forces = matches!(manifest.prior.model, PriorModel::GreenLinear | PriorModel::GreenTangent);
+            if forces.mode == ForcesMode::Residual && !(prior_has_forces && manifest.model.mode == Mode::Residual) {
+                return Err(ModelLoadError::new(
+                    origin,
+                    format!(
+                        "forces.mode = \"residual\" adds the output to the prior's forces: it needs model.mode = \
+                         \"residual\" on prior.model = \"green-linear\" or \"green-tangent\" (this model: {:?} on \
+                         {:?})",
+                        manifest.model.mode, manifest.prior.model
+                    ),
+                ));
+            }
         }
         let prior = manifest.prior.kelvinlet();
         let valid = prior.poisson_ratio > 0.0

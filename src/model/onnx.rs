@@ -12,9 +12,9 @@ use ort::session::builder::GraphOptimizationLevel;
 use ort::value::TensorRef;
 
 use super::basis::{self, Basis};
-use super::manifest::{Manifest, Mode, PriorModel};
+use super::manifest::{ForcesMode, Manifest, Mode, PriorModel};
 use super::prior::ModelPrior;
-use super::signature::{self, COEFFICIENTS, DISPLACEMENT, Input, Output, Signature};
+use super::signature::{self, COEFFICIENTS, DISPLACEMENT, FORCES, Input, Output, Signature};
 use super::{LoadContext, ModelLoadError};
 use crate::engine::{
     Answer, DeformationModel, Forces, ModelError, ModelInfo, ModelKind, StageTiming, Target, VOLUMETRIC_LAW_KEY,
@@ -53,12 +53,18 @@ struct Buffers {
     prior: Vec<f32>,
     /// The network's share of the selected rows, for residual models that run beside the prior.
     network: Vec<f32>,
+    /// The graph's `forces` output [K, 3], for graphs that give one.
+    learned_forces: Vec<f32>,
+    /// The prior's force on each interaction point (Green's-function priors).
+    prior_forces: Vec<[f64; 3]>,
     workspace: Workspace,
 }
 
 pub struct OnnxModel {
     info: ModelInfo,
     mode: Mode,
+    /// How a graph's `forces` output is served; `None` for graphs without one.
+    forces: Option<ForcesMode>,
     signature: Signature,
     /// Φ for graphs whose output is `coefficients`.
     basis: Option<Basis>,
@@ -148,6 +154,21 @@ impl OnnxModel {
                 ),
             ));
         }
+        let forces = manifest.forces.as_ref().map(|f| f.mode);
+        if signature.forces != forces.is_some() {
+            let (graph, section) = if signature.forces {
+                (
+                    format!("gives {FORCES:?}"),
+                    "has no [forces] section to say how they are served",
+                )
+            } else {
+                (format!("has no {FORCES:?} output"), "has a [forces] section")
+            };
+            return Err(ModelLoadError::new(
+                &manifest_path,
+                format!("the graph {graph}, but the manifest {section}"),
+            ));
+        }
         let basis = load_basis(origin, files.basis, signature.output, mesh)?;
         let output = match &basis {
             Some(basis) => (COEFFICIENTS, vec![1, basis.modes() as i64]),
@@ -183,7 +204,20 @@ impl OnnxModel {
         if let Some(law) = manifest.volumetric_law() {
             metadata.insert(VOLUMETRIC_LAW_KEY.into(), law.name().into());
         }
-        for (section, values) in [("metrics", &manifest.metrics), ("provenance", &manifest.provenance)] {
+        let no_metrics = BTreeMap::new();
+        let force_metrics = manifest.forces.as_ref().map_or(&no_metrics, |f| &f.metrics);
+        if let Some(mode) = forces {
+            let text = match mode {
+                ForcesMode::Residual => "learned: the prior's (G[S,S])⁻¹ u_S plus the network's force on each point",
+                ForcesMode::Direct => "learned: the network's force on each interaction point",
+            };
+            metadata.insert("forces".into(), text.into());
+        }
+        for (section, values) in [
+            ("metrics", &manifest.metrics),
+            ("provenance", &manifest.provenance),
+            ("forces", force_metrics),
+        ] {
             for (k, v) in values {
                 metadata.insert(format!("{section}.{k}"), v.to_string().trim_matches('"').to_owned());
             }
@@ -195,11 +229,16 @@ impl OnnxModel {
                 mesh: mesh.content_hash.clone(),
                 regime: manifest.model.regime.clone(),
                 metadata,
-                // The contract has no force output: a network's field says nothing exact about the
-                // loads that hold it, and the prior's estimate would not be the network's.
-                forces: Forces::Unavailable,
+                // A field says nothing exact about the loads that hold it, and the prior's forces are
+                // not the network's: only a graph trained on forces gives them.
+                forces: if forces.is_some() {
+                    Forces::Learned
+                } else {
+                    Forces::Unavailable
+                },
             },
             mode: manifest.model.mode,
+            forces,
             signature,
             basis,
             output,
@@ -225,13 +264,13 @@ impl OnnxModel {
     fn warm_up(&self, mesh: &TetMesh) -> Result<(), ModelError> {
         let mut buffers = self.take_buffers();
         let result = match self.signature.input {
-            Input::Features => self.run_network(&buffers.input, 0, |_| Ok(())),
+            Input::Features => self.run_network(&buffers.input, 0, |_, _| Ok(())),
             Input::Interaction => {
                 let mut points = InteractionPoints::default();
                 let node = mesh.surface_nodes.first().copied().unwrap_or(0);
                 points.push(node, mesh.positions[node as usize], [0.0, 0.0, 0.001]);
                 fill_interaction(&points, &mut buffers.input);
-                self.run_network(&buffers.input, 1, |_| Ok(()))
+                self.run_network(&buffers.input, 1, |_, _| Ok(()))
             }
         };
         buffers.dirty.clear();
@@ -255,6 +294,8 @@ impl OnnxModel {
                 Vec::new()
             },
             network: Vec::new(),
+            learned_forces: Vec::new(),
+            prior_forces: Vec::new(),
             workspace: Workspace::default(),
         })
     }
@@ -288,12 +329,13 @@ impl OnnxModel {
     }
 
     /// Runs the session on `input` (`features` [1, N, C], or `interaction` [1, k, 6]) and hands the
-    /// output's values to `consume`, after checking their shape.
+    /// output's values, and the `forces` [1, k, 3] of a graph that gives them, to `consume`, after
+    /// checking their shapes.
     fn run_network(
         &self,
         input: &[f32],
         k: usize,
-        consume: impl FnOnce(&[f32]) -> Result<(), ModelError>,
+        consume: impl FnOnce(&[f32], Option<&[f32]>) -> Result<(), ModelError>,
     ) -> Result<(), ModelError> {
         let name = self.signature.input.name();
         let shape = match self.signature.input {
@@ -318,7 +360,18 @@ impl OnnxModel {
                 "output {output} has shape {shape:?}, expected {expected:?}"
             )));
         }
-        consume(values)
+        if !self.signature.forces {
+            return consume(values, None);
+        }
+        let (shape, forces) = outputs[FORCES]
+            .try_extract_tensor::<f32>()
+            .map_err(|e| ModelError::Runtime(format!("output {FORCES}: {e}")))?;
+        if shape[..] != [1, k as i64, 3] {
+            return Err(ModelError::Runtime(format!(
+                "output {FORCES} has shape {shape:?}, expected [1, {k}, 3]"
+            )));
+        }
+        consume(values, Some(forces))
     }
 }
 
@@ -377,6 +430,12 @@ fn load_basis(
     }
 }
 
+/// Where an interaction graph's outputs are copied: its main output (g, or the field) and its forces.
+struct Encoded<'a> {
+    output: &'a mut Vec<f32>,
+    forces: &'a mut Vec<f32>,
+}
+
 /// Writes each interaction point's rest position and prescribed displacement, [K, 6] row-major.
 fn fill_interaction(points: &InteractionPoints, input: &mut Vec<f32>) {
     input.clear();
@@ -432,13 +491,38 @@ impl DeformationModel for OnnxModel {
         timing: &mut StageTiming,
     ) -> Result<(), ModelError> {
         let mut buffers = self.take_buffers();
-        let result = self.predict_with(points, target, workspace, &mut buffers, out.displacements, timing);
+        let result = self
+            .predict_with(points, target, workspace, &mut buffers, out.displacements, timing)
+            .map(|()| self.write_forces(&buffers, out.forces));
         self.return_buffers(buffers);
         result
     }
 }
 
 impl OnnxModel {
+    /// The force on each interaction point from the graph's `forces` output, plus the prior's own
+    /// for `forces.mode = "residual"`.
+    fn write_forces(&self, buffers: &Buffers, forces: &mut Vec<[f64; 3]>) {
+        let Some(mode) = self.forces else {
+            return;
+        };
+        forces.clear();
+        let learned = buffers
+            .learned_forces
+            .chunks_exact(3)
+            .map(|f| [f[0] as f64, f[1] as f64, f[2] as f64]);
+        match mode {
+            ForcesMode::Direct => forces.extend(learned),
+            ForcesMode::Residual => forces.extend(
+                buffers
+                    .prior_forces
+                    .iter()
+                    .zip(learned)
+                    .map(|(p, l)| std::array::from_fn(|k| p[k] + l[k])),
+            ),
+        }
+    }
+
     fn predict_with(
         &self,
         points: &InteractionPoints,
@@ -471,16 +555,20 @@ impl OnnxModel {
                 cloud: &self.all_nodes,
                 nodes: None,
             };
-            timing.gpu = self
-                .prior
-                .field(points, every_node, &mut buffers.workspace, &mut buffers.prior)?;
+            timing.gpu = self.prior.field(
+                points,
+                every_node,
+                &mut buffers.workspace,
+                &mut buffers.prior,
+                &mut buffers.prior_forces,
+            )?;
             timing.prior_us = start.elapsed().as_secs_f32() * 1e6;
         }
         self.fill_features(points, buffers);
         let features = &buffers.input;
         let network = |out: &mut [f32], add: bool, network_us: &mut f32| {
             let start = Instant::now();
-            let result = self.run_network(features, 0, |values| {
+            let result = self.run_network(features, 0, |values, _| {
                 gather(values, target, out, add);
                 Ok(())
             });
@@ -499,10 +587,11 @@ impl OnnxModel {
                 network_out.resize(out.len(), 0.0);
                 let mut network_us = 0.0;
                 let mut prior_us = 0.0;
+                let prior_forces = &mut buffers.prior_forces;
                 let (prior, net) = rayon::join(
                     || {
                         let start = Instant::now();
-                        let r = self.prior.field(points, target, workspace, out);
+                        let r = self.prior.field(points, target, workspace, out, prior_forces);
                         prior_us = start.elapsed().as_secs_f32() * 1e6;
                         r
                     },
@@ -550,25 +639,36 @@ impl OnnxModel {
         }
         // The encoder (ONNX Runtime, one thread) runs beside the prior (the rayon pool); the network's
         // share is added once both are done, while the pool's threads are still awake.
-        let Buffers { input, network, .. } = buffers;
+        let Buffers {
+            input,
+            network,
+            learned_forces,
+            prior_forces,
+            ..
+        } = buffers;
         let mut encoder_us = 0.0;
-        let (prior, encoded) = match self.mode {
+        let mut encoded = Encoded {
+            output: network,
+            forces: learned_forces,
+        };
+        let (prior, encoded_result) = match self.mode {
             Mode::Residual => rayon::join(
                 || {
                     let start = Instant::now();
-                    let result = self.prior.field(points, target, workspace, out);
+                    let result = self.prior.field(points, target, workspace, out, prior_forces);
                     timing.prior_us = start.elapsed().as_secs_f32() * 1e6;
                     result.map(|gpu| timing.gpu = gpu)
                 },
-                || self.encode(points, input, network, &mut encoder_us),
+                || self.encode(points, input, &mut encoded, &mut encoder_us),
             ),
             Mode::Direct => {
                 out.fill(0.0);
-                (Ok(()), self.encode(points, input, network, &mut encoder_us))
+                (Ok(()), self.encode(points, input, &mut encoded, &mut encoder_us))
             }
         };
+        let network: &[f32] = encoded.output;
         let start = Instant::now();
-        let result = prior.and(encoded).map(|()| match &self.basis {
+        let result = prior.and(encoded_result).map(|()| match &self.basis {
             Some(basis) => basis.add_product(network, target.nodes, out),
             None => gather(network, target, out, true),
         });
@@ -576,20 +676,22 @@ impl OnnxModel {
         result
     }
 
-    /// Runs an interaction graph on `points` and copies its output (g, or the whole field) into
-    /// `output`, timing it into `elapsed_us`.
+    /// Runs an interaction graph on `points` and copies its outputs (g, or the whole field; the
+    /// forces of a graph that gives them) into `into`, timing it into `elapsed_us`.
     fn encode(
         &self,
         points: &InteractionPoints,
         input: &mut Vec<f32>,
-        output: &mut Vec<f32>,
+        into: &mut Encoded<'_>,
         elapsed_us: &mut f32,
     ) -> Result<(), ModelError> {
         let start = Instant::now();
         fill_interaction(points, input);
-        let result = self.run_network(input, points.len(), |values| {
-            output.clear();
-            output.extend_from_slice(values);
+        let result = self.run_network(input, points.len(), |values, forces| {
+            into.output.clear();
+            into.output.extend_from_slice(values);
+            into.forces.clear();
+            into.forces.extend_from_slice(forces.unwrap_or_default());
             Ok(())
         });
         *elapsed_us = start.elapsed().as_secs_f32() * 1e6;
@@ -612,7 +714,11 @@ impl OnnxModel {
         out: &mut [f32],
         timing: &mut StageTiming,
     ) -> Result<(), ModelError> {
-        self.encode(points, &mut buffers.input, &mut buffers.network, &mut timing.network_us)?;
+        let mut encoded = Encoded {
+            output: &mut buffers.network,
+            forces: &mut buffers.learned_forces,
+        };
+        self.encode(points, &mut buffers.input, &mut encoded, &mut timing.network_us)?;
         let start = Instant::now();
         let empty = Coefficients::default();
         let coefficients = match self.mode {

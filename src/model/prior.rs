@@ -14,22 +14,24 @@ pub enum ModelPrior {
 }
 
 impl ModelPrior {
-    /// Writes the prior's displacement at `target`'s nodes into `out`, row-major (n, 3); returns
-    /// the GPU's phases when it was evaluated there.
+    /// Writes the prior's displacement at `target`'s nodes into `out`, row-major (n, 3), and for a
+    /// prior with exact forces (Green's functions) the force on each interaction point into
+    /// `forces`; returns the GPU's phases when it was evaluated there.
     pub fn field(
         &self,
         points: &InteractionPoints,
         target: Target<'_>,
         workspace: &mut Workspace,
         out: &mut [f32],
+        forces: &mut Vec<[f64; 3]>,
     ) -> Result<Option<GpuPhases>, ModelError> {
         match self {
             ModelPrior::Kelvinlet(kelvinlet) => {
                 Ok(kelvinlet.solve_and_evaluate(points, workspace, target.cloud, out)?)
             }
-            // The grasp forces the Green's functions also give are not the network's: dropped.
             ModelPrior::Green(green) => {
-                green.solve(&points.nodes, &points.displacements, target.nodes, out, &mut Vec::new())?;
+                forces.clear();
+                green.solve(&points.nodes, &points.displacements, target.nodes, out, forces)?;
                 Ok(None)
             }
         }

@@ -10,6 +10,8 @@ pub const FEATURES: &str = "features";
 pub const INTERACTION: &str = "interaction";
 pub const DISPLACEMENT: &str = "displacement";
 pub const COEFFICIENTS: &str = "coefficients";
+/// The optional second output of an interaction graph: the force (N) on each interaction point.
+pub const FORCES: &str = "forces";
 /// Per interaction point: rest position (3) and prescribed displacement (3).
 pub const INTERACTION_WIDTH: usize = 6;
 
@@ -43,13 +45,16 @@ pub enum Output {
 pub struct Signature {
     pub input: Input,
     pub output: Output,
+    /// Whether the graph also gives `forces` f32 [B, K, 3] (interaction graphs only).
+    pub forces: bool,
 }
 
 /// Reads `session`'s signature: one input (`features` [B, N, channels] or `interaction` [B, K, 6]) and
 /// one output (`displacement` [B, N, 3], or `coefficients` [B, M] after `interaction`), f32, with B
-/// either 1 or symbolic.
+/// either 1 or symbolic; an interaction graph may add `forces` [B, K, 3].
 pub fn read(session: &Session, channels: usize, n: usize, origin: &str) -> Result<Signature, ModelLoadError> {
-    let input = single(session.inputs(), "input", [FEATURES, INTERACTION], origin)?;
+    let inputs: Vec<&Outlet> = session.inputs().iter().collect();
+    let input = single(&inputs, "input", [FEATURES, INTERACTION], origin)?;
     let input = match input.name() {
         FEATURES => {
             check_shape(input, "input", &[Some(n), Some(channels)], "[batch, N, C]", origin)?;
@@ -75,7 +80,30 @@ pub fn read(session: &Session, channels: usize, n: usize, origin: &str) -> Resul
             Input::Interaction
         }
     };
-    let output = single(session.outputs(), "output", [DISPLACEMENT, COEFFICIENTS], origin)?;
+    let (main, forces): (Vec<&Outlet>, Vec<&Outlet>) = session.outputs().iter().partition(|o| o.name() != FORCES);
+    let forces = match (&forces[..], input) {
+        ([], _) => false,
+        ([outlet], Input::Interaction) => {
+            check_shape(outlet, "output", &[None, Some(3)], "[batch, K, 3]", origin)?;
+            true
+        }
+        ([_], Input::Features) => {
+            return Err(ModelLoadError::new(
+                origin,
+                format!(
+                    "output {FORCES:?} gives a force per interaction point, which needs input {INTERACTION:?}; \
+                     this graph reads {FEATURES:?}"
+                ),
+            ));
+        }
+        _ => {
+            return Err(ModelLoadError::new(
+                origin,
+                format!("more than one output named {FORCES:?}"),
+            ));
+        }
+    };
+    let output = single(&main, "output", [DISPLACEMENT, COEFFICIENTS], origin)?;
     let output = match (output.name(), input) {
         (DISPLACEMENT, _) => {
             check_shape(output, "output", &[Some(n), Some(3)], "[batch, N, 3]", origin)?;
@@ -94,11 +122,16 @@ pub fn read(session: &Session, channels: usize, n: usize, origin: &str) -> Resul
             ));
         }
     };
-    Ok(Signature { input, output })
+    Ok(Signature { input, output, forces })
 }
 
 /// The one input (or output, as `role` says) of a graph, named one of `names`.
-fn single<'a>(outlets: &'a [Outlet], role: &str, names: [&str; 2], origin: &str) -> Result<&'a Outlet, ModelLoadError> {
+fn single<'a>(
+    outlets: &[&'a Outlet],
+    role: &str,
+    names: [&str; 2],
+    origin: &str,
+) -> Result<&'a Outlet, ModelLoadError> {
     let [a, b] = names;
     let [outlet] = outlets else {
         return Err(ModelLoadError::new(
@@ -115,7 +148,7 @@ fn single<'a>(outlets: &'a [Outlet], role: &str, names: [&str; 2], origin: &str)
             ),
         ));
     }
-    Ok(outlet)
+    Ok(*outlet)
 }
 
 /// Checks that `outlet` (an input or output, as `role` says) is f32 [batch, dims...] where each
@@ -153,7 +186,7 @@ fn check_shape(
     Ok(shape.to_vec())
 }
 
-fn describe(outlets: &[Outlet]) -> String {
+fn describe(outlets: &[&Outlet]) -> String {
     outlets
         .iter()
         .map(|o| format!("{} {:?}", o.name(), o.dtype().tensor_shape().map(|s| s.to_vec())))

@@ -161,6 +161,7 @@ pub fn model_info(info: &ModelInfo) -> pb::ModelInfo {
             Forces::Unavailable => pb::Forces::Unavailable,
             Forces::Exact => pb::Forces::Exact,
             Forces::Estimate => pb::Forces::Estimate,
+            Forces::Learned => pb::Forces::Learned,
         } as i32,
     }
 }

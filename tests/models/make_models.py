@@ -19,6 +19,8 @@ of REDUCED_MODES modes:
 * reduced-residual       set encoder → `coefficients` [B, M]; basis.safetensors (f32) beside it
 * reduced-residual-f16   the same graph and basis, the basis stored in f16
 * reduced-folded         the same encoder with the basis folded into the graph: `displacement`
+* reduced-forces         reduced-residual with a second output `forces` [B, K, 3] = FORCE_GAINS ⊙ u_k,
+                         a closed form the tests check nak's per-grasp sums against
 
 (the three give the same field, up to f16 rounding), and tests/models/faulty/<case>/ models that must
 be refused, fail, or run long.
@@ -55,6 +57,8 @@ REDUCED_MODES = 12
 SLOW_ITERATIONS = 3_000_000
 # Residuals of a few millimetres: the last layer is scaled so outputs are mm-sized.
 OUTPUT_SCALE = 0.004
+# reduced-forces: the force on each point, N per metre of its prescribed displacement, per axis.
+FORCE_GAINS = [100.0, 200.0, 300.0]
 
 
 @dataclass(frozen=True)
@@ -153,11 +157,16 @@ def write_reduced(
     basis_hash: str | None = None,
     modes: int = REDUCED_MODES,
     width: int = 6,
+    forces: str | None = None,
 ) -> None:
     """A model of the interaction form (docs/design.md §7); `basis` (default: a random one) goes in the graph
-    (`folded`) or beside it."""
+    (`folded`) or beside it; `forces` adds a `forces` output: "points" [B, K, 3] as the contract says,
+    "two-axes" [B, K, 2] or "per-set" [B, 3] (wrong shape, wrong rank)."""
     g = GraphBuilder(seed)
     coefficients = set_encoder(g, modes, width)
+    outputs = []
+    if forces is not None:
+        outputs.append(force_output(g, forces))
     phi = random_basis(mesh, modes, seed) if basis is None else basis
     if folded:
         flat = g.constant(phi.reshape(-1, modes).T.copy(), "basis")  # [M, 3N]
@@ -172,7 +181,7 @@ def write_reduced(
         g.nodes,
         directory.name,
         [helper.make_tensor_value_info("interaction", TensorProto.FLOAT, ["batch", "points", width])],
-        [output],
+        [output, *outputs],
         g.initializers,
     )
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)], producer_name="nak-test-models")
@@ -186,7 +195,22 @@ def write_reduced(
             str(directory / "basis.safetensors"),
             metadata={"mesh_hash": basis_hash or mesh.content_hash},
         )
-    write_manifest(directory, ["interaction"], "residual", mesh, seed, description)
+    write_manifest(directory, ["interaction"], "residual", mesh, seed, description, forces=forces is not None)
+
+
+def force_output(g: GraphBuilder, form: str) -> Any:
+    """`forces` = FORCE_GAINS ⊙ u_k per point (or the wrong shapes `two-axes`, `per-set`); its value info."""
+    axes = 2 if form == "two-axes" else 3
+    starts, ends, axis = (g.constant(np.array(v, np.int64)) for v in ([3], [3 + axes], [2]))
+    u = g.op("Slice", ["interaction", starts, ends, axis])
+    scaled = g.op("Mul", [u, g.constant(np.array(FORCE_GAINS[:axes], np.float32))])
+    if form == "per-set":
+        g.nodes.append(
+            helper.make_node("ReduceSum", [scaled, g.constant(np.array([1], np.int64))], ["forces"], keepdims=0)
+        )
+        return helper.make_tensor_value_info("forces", TensorProto.FLOAT, ["batch", 3])
+    g.nodes.append(helper.make_node("Identity", [scaled], ["forces"]))
+    return helper.make_tensor_value_info("forces", TensorProto.FLOAT, ["batch", "points", axes])
 
 
 def feature_columns(channels: list[str]) -> list[str]:
@@ -296,8 +320,11 @@ def write_model(
     write_manifest(directory, channels, mode, mesh, seed, description)
 
 
-def write_manifest(directory: Path, channels: list[str], mode: str, mesh: Mesh, seed: int, description: str) -> None:
+def write_manifest(
+    directory: Path, channels: list[str], mode: str, mesh: Mesh, seed: int, description: str, forces: bool = False
+) -> None:
     listed = ", ".join(f'"{c}"' for c in channels)
+    forces_section = '\n[forces]\nmode = "direct"\n' if forces else ""
     (directory / "manifest.toml").write_text(
         f"""# Test model made by tests/models/make_models.py: fixed random weights, not trained.
 [model]
@@ -321,7 +348,7 @@ lambda = 0.001
 [provenance]
 made_by = "tests/models/make_models.py"
 seed = {seed}
-"""
+{forces_section}"""
     )
 
 
@@ -394,6 +421,7 @@ def main() -> None:
         ("reduced-residual", {}),
         ("reduced-residual-f16", {"basis_dtype": np.float16}),
         ("reduced-folded", {"folded": True}),
+        ("reduced-forces", {"forces": "points"}),
     ]
     for name, extra in reduced:
         # One encoder and one basis (seed 21) in three forms.
@@ -403,6 +431,8 @@ def main() -> None:
         ("basis-wrong-size", {"basis": random_basis(coarse, REDUCED_MODES, 1)[:-1]}),
         ("basis-other-mesh", {"basis_hash": meshes[0].content_hash}),
         ("basis-modes-mismatch", {"basis": random_basis(coarse, REDUCED_MODES - 4, 1)}),
+        ("forces-two-axes", {"forces": "two-axes"}),
+        ("forces-per-set", {"forces": "per-set"}),
     ]
     for seed, (name, extra) in enumerate(bad_reduced, start=31):
         write_reduced(faulty / name / name, coarse, seed, name, **extra)

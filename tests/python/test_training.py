@@ -26,6 +26,7 @@ from nak_training.dataset import open_dataset
 from nak_training.errors import TrainingInputError
 from nak_training.evaluate import evaluate, nak_eval
 from nak_training.export import export
+from nak_training.force_report import write_force_report
 from nak_training.kelvinlet import Prior, pad_points
 from nak_training.models import Grasped, MeshGNN, build
 from nak_training.reduced_train import ReducedTrainer
@@ -399,6 +400,82 @@ def test_a_network_on_a_green_prior_is_trained_and_served_on_it(
     residual = (basis @ g[0]).reshape(-1, 3)
     scale = float(np.abs(green[0]).max())
     assert np.abs(network[0] - (green[0] + residual)).max() <= 1e-3 * scale
+
+
+@pytest.mark.parametrize("prior", ["kelvinlet", "green-linear"])
+def test_a_force_head_is_trained_exported_and_served_as_the_sum_of_its_point_forces(
+    nak_binary: Path, coarse_data: Path, tmp_path: Path, prior: str
+) -> None:
+    """forces = true: the graph gains `forces` [B, K, 3], checked against onnxruntime at export; the
+    manifest says how nak serves them (direct on the Kelvinlet; on green-linear, residual: added to its
+    exact forces); nak serves each grasp's sum; training lowers the error nak eval measures."""
+    dataset = open_dataset(coarse_data)
+    nak = Nak(nak_binary, COARSE)
+    models = tmp_path / "models"
+    errors = {}
+    for name, steps, lr in (("trained", 300, 3e-3), ("untrained", 1, 1e-12)):
+        values = dict(name=name, architecture="pod", prior=prior, modes=8, width=32, steps=steps, batch=8, lr=lr)
+        config = parse_config(tiny_config(**values, forces=True, force_weight=1.0, val_every=100), "tiny")
+        run = tmp_path / name
+        run.mkdir()
+        ReducedTrainer(config, dataset, run, log=quiet, nak=nak).run()
+        export(config, dataset, run, models, log=quiet)
+    green_args = ["--models", str(models)] + ([f"--{prior}"] if prior != "kelvinlet" else [])
+    for name in ("trained", "untrained"):
+        manifest = tomllib.loads((models / name / "manifest.toml").read_text())
+        assert manifest["forces"]["mode"] == ("direct" if prior == "kelvinlet" else "residual")
+        out = tmp_path / f"{name}-eval.json"
+        args = ["eval", "--data", str(coarse_data), "--model", name, "--split", "test", "--output", str(out)]
+        nak.run(*args, *green_args)
+        report = json.loads(out.read_text())
+        errors[name] = report["grasp_forces"]["combined"]["mean_relative_error"]
+    if prior == "kelvinlet":
+        assert errors["trained"] < 0.5 * errors["untrained"], errors
+    else:
+        # On linear data green-linear's forces are the truth: the head learns to add nothing, and
+        # what is served is the prior's forces plus that nothing.
+        assert max(errors.values()) < 1e-4, errors
+
+    # Served forces: per grasp, the sum over its points of the graph's output (plus the prior's own).
+    sample = next(s for s in dataset.load("test").samples if s.forces is not None and len(s.forces) == 2)
+    interaction = np.concatenate([dataset.mesh.positions[sample.nodes].numpy(), sample.displacements], axis=1)
+    session = onnxruntime.InferenceSession(str(models / "trained" / "model.onnx"))
+    assert [o.name for o in session.get_outputs()] == ["coefficients", "forces"]
+    (point_forces,) = session.run(["forces"], {"interaction": interaction[None].astype("f4")})
+    learned = np.stack([point_forces[0][sample.grasp_of_point == g].sum(0) for g in range(2)])
+    fields = tmp_path / "fields.safetensors"
+    args = ["dataset", "fields", "--data", str(coarse_data), "--model", "trained", "--split", "test"]
+    nak.run(*args, "--out", str(fields), *green_args)
+    row = list(load_file(str(fields))["index"]).index(sample.index)
+    served = load_file(str(fields))["grasp_forces"][row]
+    expected = learned
+    if prior != "kelvinlet":
+        out = tmp_path / "prior.safetensors"
+        nak.run(
+            "dataset",
+            "fields",
+            "--data",
+            str(coarse_data),
+            "--model",
+            prior,
+            "--split",
+            "test",
+            "--out",
+            str(out),
+            *green_args,
+        )
+        expected = expected + load_file(str(out))["grasp_forces"][row]
+    assert np.abs(served - expected).max() <= 1e-4 * np.abs(expected).max(), (served, expected)
+    if prior != "kelvinlet":
+        return
+    # The force report: the prior and the network per subset, the figure, and the head's cost.
+    report = write_force_report(
+        coarse_data, [models / "trained"], nak_binary, COARSE, tmp_path / "forces", "green-linear"
+    )
+    text = report.read_text()
+    assert "| `green-linear` | single |" in text and "| `trained` | combined |" in text, text
+    assert "| `trained` |" in text.split("What the force head costs")[1], text
+    assert (tmp_path / "forces" / "served-against-fem.png").stat().st_size > 10_000
 
 
 def test_the_mesh_gnn_carries_its_edges_and_is_served_as_onnxruntime_computes_it(

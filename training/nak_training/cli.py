@@ -5,6 +5,7 @@ python -m nak_training train|export|evaluate --config C --data DATA
 python -m nak_training forms --config C --data DATA     (a reduced network's shipping forms, timed)
 python -m nak_training report --data DATA
 python -m nak_training failures --data DATA    (nonlinear failures against how deep the grasps push)
+python -m nak_training forces --data DATA --model DIR   (grasp forces against the FEM's, and their cost)
 """
 
 from __future__ import annotations
@@ -55,8 +56,21 @@ def main(argv: list[str] | None = None) -> int:
     report.add_argument("--out", type=Path, default=Path("docs/reports/models"))
     failures = commands.add_parser("failures", help="a nonlinear dataset's failure rate by the grasps' inward push")
     failures.add_argument("--data", type=Path, required=True, help="a nonlinear dataset made by nak datagen")
+    forces = commands.add_parser("forces", help="learned grasp forces and green-tangent's against the FEM's")
+    forces.add_argument("--data", type=Path, required=True, help="a nonlinear dataset made by nak datagen")
+    forces.add_argument("--model", type=Path, nargs="+", required=True, help="model directories with [forces]")
+    forces.add_argument("--nak", type=Path, default=DEFAULT_NAK)
+    forces.add_argument("--mesh", type=Path, default=DEFAULT_MESH)
+    forces.add_argument("--out", type=Path, default=Path("docs/reports/forces"))
+    forces.add_argument("--prior", default="green-tangent", choices=["green-tangent", "green-linear"])
     args = parser.parse_args(argv)
     try:
+        if args.command == "forces":
+            from .force_report import write_force_report
+
+            written = write_force_report(args.data, args.model, args.nak, args.mesh, args.out, args.prior)
+            print(f"wrote {written}")
+            return 0
         if args.command == "failures":
             from .failures import report as failure_report
 

@@ -57,6 +57,10 @@ class TrainConfig:
     # POD from the first this many train targets (0: all): the S × S Gram matrix of the POD bounds how
     # many samples it can take, not how many the encoder may learn from.
     pod_samples: int = 0
+    # Reduced networks: a second output, the force on each interaction point, trained on the data's
+    # finite-element grasp forces with this weight on their mean relative error (docs/design.md §7).
+    forces: bool = False
+    force_weight: float = 0.1
     seed: int = 0
     threads: int = 2
     description: str = ""
@@ -69,6 +73,12 @@ class TrainConfig:
     def reduced(self) -> bool:
         """Whether this is a reduced-basis network, served in the interaction form."""
         return self.architecture in REDUCED_ARCHITECTURES
+
+    @property
+    def forces_mode(self) -> str:
+        """How nak serves the learned forces: on top of the prior's own (+Res on a Green's-function prior,
+        whose (G[S,S])⁻¹ u_S are the linearization's forces), or alone."""
+        return "residual" if self.method == "res" and self.prior != "kelvinlet" else "direct"
 
     @property
     def subsets(self) -> tuple[str, ...]:
@@ -111,6 +121,12 @@ def parse_config(values: dict[str, Any], origin: str) -> TrainConfig:
             raise TrainingInputError(origin, f"{key} = {getattr(config, key)!r}: must be at least 1")
     if config.train_samples < 0:
         raise TrainingInputError(origin, f"train_samples = {config.train_samples!r}: must be 0 (all) or more")
+    if config.forces and not config.reduced:
+        raise TrainingInputError(
+            origin, "forces = true needs a reduced architecture (pod, deeponet): forces are per interaction point"
+        )
+    if not config.force_weight >= 0:
+        raise TrainingInputError(origin, f"force_weight = {config.force_weight!r}: must be 0 or more")
     if config.pod_samples < 0:
         raise TrainingInputError(origin, f"pod_samples = {config.pod_samples!r}: must be 0 (all) or more")
     return config

@@ -61,8 +61,14 @@ class Sample:
     index: int
     subset: str
     split: str
-    nodes: np.ndarray  # i64 [K], every grasped node
+    nodes: (
+        np.ndarray
+    )  # i64 [K], every grasped node once (a node two grasps hold counts for the first, as nak serves it)
     displacements: np.ndarray  # f64 [K, 3], the displacement of each grasped node
+    grasp_of_point: np.ndarray  # i64 [K], the grasp each node counts for
+    forces: (
+        np.ndarray | None
+    )  # f64 [G, 3], each grasp's finite-element force (N); None in data made before nak stored them
 
 
 @dataclass(frozen=True)
@@ -159,14 +165,19 @@ def is_failed(record: dict[str, Any]) -> bool:
 
 def _sample(record: dict[str, Any], origin: Path) -> Sample:
     try:
-        nodes = [n for g in record["grasps"] for n in g["nodes"]]
-        displacements = [g["displacement"] for g in record["grasps"] for _ in g["nodes"]]
+        first: dict[int, tuple[int, list[float]]] = {}
+        for g, grasp in enumerate(record["grasps"]):
+            for n in grasp["nodes"]:
+                first.setdefault(int(n), (g, grasp["displacement"]))
+        forces = [g.get("force") for g in record["grasps"]]
         return Sample(
             index=int(record["index"]),
             subset=str(record["subset"]),
             split=str(record["split"]),
-            nodes=np.asarray(nodes, dtype=np.int64),
-            displacements=np.asarray(displacements, dtype=np.float64).reshape(-1, 3),
+            nodes=np.asarray(list(first), dtype=np.int64),
+            displacements=np.asarray([d for _, d in first.values()], dtype=np.float64).reshape(-1, 3),
+            grasp_of_point=np.asarray([g for g, _ in first.values()], dtype=np.int64),
+            forces=None if None in forces else np.asarray(forces, dtype=np.float64).reshape(-1, 3),
         )
     except (KeyError, TypeError, ValueError) as e:
         raise TrainingInputError(origin, f"sample {record.get('index')}: malformed grasps ({e})") from e

@@ -53,8 +53,22 @@ def metrics_of(report: dict[str, Any]) -> dict[str, Any]:
     return metrics
 
 
+def force_metrics_of(report: dict[str, Any]) -> dict[str, Any]:
+    """The test error of a model's grasp forces, per subset, from a `nak eval` report (empty when the
+    model or the data has no forces)."""
+    metrics: dict[str, Any] = {}
+    for subset, s in report.get("grasp_forces", {}).items():
+        metrics[f"mean_relative_error_{subset}"] = round(s["mean_relative_error"], 4)
+        metrics[f"median_relative_error_{subset}"] = round(s["median_relative_error"], 4)
+        metrics[f"median_magnitude_ratio_{subset}"] = round(s["median_magnitude_ratio"], 4)
+        metrics[f"median_angle_deg_{subset}"] = round(s["median_angle_deg"], 2)
+        metrics[f"grasps_{subset}"] = s["grasps"]
+    return metrics
+
+
 def evaluate(model_dir: Path, data: Path, nak: Path, mesh: Path) -> dict[str, Any]:
-    """Scores the model in `model_dir` and writes its [metrics]; returns them."""
+    """Scores the model in `model_dir` and writes its [metrics] (and, for a model with learned forces,
+    their test error in [forces]); returns the metrics."""
     manifest_path = model_dir / "manifest.toml"
     try:
         manifest = tomllib.loads(manifest_path.read_text())
@@ -69,6 +83,8 @@ def evaluate(model_dir: Path, data: Path, nak: Path, mesh: Path) -> dict[str, An
     metrics = {**kept, **metrics_of(report)}
     written = {k: v for k, v in metrics.items() if v is not None}
     manifest["metrics"] = written
+    if "forces" in manifest:
+        manifest["forces"] = {"mode": manifest["forces"]["mode"], **force_metrics_of(report)}
     manifest_path.write_text(MANIFEST_HEADER + tomli_w.dumps(manifest))
     return written
 

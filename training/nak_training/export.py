@@ -87,6 +87,8 @@ def export(config: TrainConfig, dataset: Dataset, run_dir: Path, out_root: Path,
         },
         "metrics": {"val_dcm": round(float(summary["val_dcm"]), 3), **ceiling_metrics(config, run_dir)},
         "provenance": provenance(config, dataset, summary, state),
+        # The test error of the forces is written by `evaluate`, through nak eval.
+        **({"forces": {"mode": config.forces_mode}} if config.forces else {}),
     }
     (directory / "manifest.toml").write_text(MANIFEST_HEADER + tomli_w.dumps(manifest))
     size = sum(f.stat().st_size for f in directory.iterdir() if f.name in ("model.onnx", BASIS_FILE))
@@ -109,7 +111,7 @@ def write_features_graph(
         opset_version=OPSET,
         dynamo=False,
     )
-    checked(model, graph, [features[i : i + 1] for i in range(len(check))], "features", "displacement", log)
+    checked(model, graph, [features[i : i + 1] for i in range(len(check))], "features", ["displacement"], log)
     return ["position", "displacement", "active"]
 
 
@@ -131,18 +133,23 @@ def write_interaction_graph(
         torch.cat([positions[s.nodes].float(), torch.from_numpy(s.displacements).float()], dim=-1)[None] for s in check
     ]
     output = "displacement" if folded else "coefficients"
+    outputs = [output, "forces"] if net.forces is not None else [output]
     torch.onnx.export(
         module,
         (inputs[0],),
         str(graph),
         input_names=["interaction"],
-        output_names=[output],
-        dynamic_axes={"interaction": {0: "batch", 1: "points"}, output: {0: "batch"}},
+        output_names=outputs,
+        dynamic_axes={
+            "interaction": {0: "batch", 1: "points"},
+            output: {0: "batch"},
+            "forces": {0: "batch", 1: "points"},
+        },
         opset_version=OPSET,
         do_constant_folding=net.trunk is None,
         dynamo=False,
     )
-    checked(module, graph, inputs, "interaction", output, log)
+    checked(module, graph, inputs, "interaction", outputs, log)
     if basis is not None and not folded:
         values = basis.float().numpy().astype(np.float16 if config.basis_precision == "f16" else np.float32)
         save_file({"basis": values}, str(directory / BASIS_FILE), metadata={"mesh_hash": dataset.mesh.content_hash})
@@ -156,12 +163,17 @@ def ceiling_metrics(config: TrainConfig, run_dir: Path) -> dict[str, float]:
     return {f"{CEILING_PREFIX}{m}": round(v, 3) for m, v in basis_ceiling(run_dir).items()}
 
 
-def checked(model: torch.nn.Module, graph: Path, inputs: list[torch.Tensor], name: str, output: str, log: Any) -> None:
-    """Refuses a graph that differs from PyTorch on `inputs` by more than RELATIVE_TOLERANCE."""
-    difference = compare_with_onnxruntime(model, graph, inputs, name, output)
-    log(f"onnxruntime vs PyTorch on {len(inputs)} val samples: relative difference {difference:.2e}")
-    if difference > RELATIVE_TOLERANCE:
-        raise TrainingInputError(graph, f"the exported graph differs from PyTorch by {difference:.2e} (relative)")
+def checked(
+    model: torch.nn.Module, graph: Path, inputs: list[torch.Tensor], name: str, outputs: list[str], log: Any
+) -> None:
+    """Refuses a graph any of whose `outputs` differs from PyTorch on `inputs` by more than
+    RELATIVE_TOLERANCE."""
+    for output, difference in zip(outputs, compare_with_onnxruntime(model, graph, inputs, name, outputs), strict=True):
+        log(f"onnxruntime vs PyTorch on {len(inputs)} val samples, {output}: relative difference {difference:.2e}")
+        if difference > RELATIVE_TOLERANCE:
+            raise TrainingInputError(
+                graph, f"the exported graph's {output} differs from PyTorch by {difference:.2e} (relative)"
+            )
 
 
 def describe(config: TrainConfig) -> str:
@@ -182,17 +194,21 @@ def compare_with_onnxruntime(
     graph: Path,
     inputs: list[torch.Tensor],
     name: str = "features",
-    output: str = "displacement",
-) -> float:
-    """Largest relative difference (over inputs, by the output's norm) between PyTorch and onnxruntime."""
+    outputs: list[str] | None = None,
+) -> list[float]:
+    """Per output (in the model's order), the largest relative difference over `inputs`, by the
+    output's norm, between PyTorch and onnxruntime."""
+    outputs = outputs or ["displacement"]
     session = onnxruntime.InferenceSession(str(graph), providers=["CPUExecutionProvider"])
-    worst = 0.0
+    worst = [0.0] * len(outputs)
     with torch.no_grad():
         for x in inputs:
-            expected = model(x).numpy()
-            (got,) = session.run([output], {name: x.numpy()})
-            scale = max(float(np.linalg.norm(expected)), 1e-30)
-            worst = max(worst, float(np.linalg.norm(got - expected)) / scale)
+            result = model(x)
+            expected = result if isinstance(result, tuple) else (result,)
+            got = session.run(outputs, {name: x.numpy()})
+            for i, (e, g) in enumerate(zip(expected, got, strict=True)):
+                scale = max(float(np.linalg.norm(e.numpy())), 1e-30)
+                worst[i] = max(worst[i], float(np.linalg.norm(g - e.numpy())) / scale)
     return worst
 
 

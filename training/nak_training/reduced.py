@@ -16,6 +16,11 @@ Two set encoders (`encoder` in the configuration):
   B_k û_k, plus a nonlinear term of the summary (for what is not linear). The more accurate.
 * `pooled`: a per-point MLP, mean and max over the points, an MLP head: few operators, so ONNX
   Runtime answers in a few tens of microseconds. The faster.
+
+With `forces`, a force head gives the force on each interaction point from the point's normalized
+input and the set's summary, in the encoder's own form: f_k = A_k û_k + c_k (a matrix and an offset per
+point), so the stiffness a grasp meets may depend on where it is and what else is held. nak sums the
+points of each grasp (docs/design.md §7).
 """
 
 from __future__ import annotations
@@ -65,6 +70,12 @@ class Encoder(nn.Module):
         return (interaction - shift) / torch.cat([self.x_std, self.u_scale])
 
     def forward(self, interaction: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        return self.encode(interaction, mask)[0]
+
+    def encode(
+        self, interaction: torch.Tensor, mask: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """g [B, M], the normalized points [B, K, 6] and the set's summary [B, 2W] (for a force head)."""
         raise NotImplementedError
 
 
@@ -87,9 +98,12 @@ class PooledEncoder(Encoder):
         self.embed = mlp([6, width, width, width])
         self.head = mlp([2 * width, width, modes])
 
-    def forward(self, interaction: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
-        summary, _ = pool(self.embed(self.normalized(interaction)), mask)
-        return self.head(summary) * self.g_scale
+    def encode(
+        self, interaction: torch.Tensor, mask: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        f = self.normalized(interaction)
+        summary, _ = pool(self.embed(f), mask)
+        return self.head(summary) * self.g_scale, f, summary
 
 
 class SetEncoder(Encoder):
@@ -101,7 +115,9 @@ class SetEncoder(Encoder):
         self.matrices = mlp([3 + 2 * width, width, width, 3 * modes])
         self.head = mlp([2 * width, width, modes])
 
-    def forward(self, interaction: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    def encode(
+        self, interaction: torch.Tensor, mask: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """`mask` [B, K] marks real points in a padded training batch; a served request has none.
 
         Written for few operators at serving time (ONNX Runtime's cost per request is mostly per
@@ -118,7 +134,28 @@ class SetEncoder(Encoder):
         b = self.matrices[1:](h).unflatten(-1, (self.modes, 3))
         linear = (b * f[..., 3:].unsqueeze(-2)).sum(-1)  # [B, K, M]: B_k û_k
         linear = linear.mean(1) if weights is None else (linear * weights).sum(1) / weights.sum(1)
-        return (linear + self.head(summary)) * self.g_scale
+        return (linear + self.head(summary)) * self.g_scale, f, summary
+
+
+class ForceHead(nn.Module):
+    """The force (N) on each interaction point: f_k = (A_k û_k + c_k) · f_scale, with A_k [3, 3] and c_k
+    from an MLP over the point's normalized input and the set's summary (its first layer split as in
+    SetEncoder, so the summary is transformed once per set)."""
+
+    f_scale: torch.Tensor
+
+    def __init__(self, width: int) -> None:
+        super().__init__()
+        self.first = nn.Linear(6 + 2 * width, width)
+        self.rest = nn.Sequential(nn.GELU(), nn.Linear(width, width), nn.GELU(), nn.Linear(width, 12))
+        self.register_buffer("f_scale", torch.ones(1))
+
+    def forward(self, f: torch.Tensor, summary: torch.Tensor) -> torch.Tensor:
+        w = self.first.weight
+        h = f @ w[:, :6].T + (summary @ w[:, 6:].T + self.first.bias).unsqueeze(1)
+        out = self.rest(h)
+        a = out[..., :9].unflatten(-1, (3, 3))
+        return ((a * f[..., 3:].unsqueeze(-2)).sum(-1) + out[..., 9:]) * self.f_scale
 
 
 class Trunk(nn.Module):
@@ -143,10 +180,20 @@ class Trunk(nn.Module):
 class ReducedNet(nn.Module):
     """The encoder, and the trunk for a DeepONet (a POD's basis is data, not parameters)."""
 
-    def __init__(self, architecture: str, modes: int, width: int, encoder: str = "linear") -> None:
+    def __init__(
+        self, architecture: str, modes: int, width: int, encoder: str = "linear", forces: bool = False
+    ) -> None:
         super().__init__()
         self.encoder: Encoder = SetEncoder(modes, width) if encoder == "linear" else PooledEncoder(modes, width)
         self.trunk = Trunk(modes, width) if architecture == "deeponet" else None
+        self.forces = ForceHead(width) if forces else None
+
+    def encode(
+        self, interaction: torch.Tensor, mask: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """g [B, M] and, with a force head, the force on each point [B, K, 3]."""
+        g, f, summary = self.encoder.encode(interaction, mask)
+        return g, None if self.forces is None else self.forces(f, summary)
 
 
 class InteractionGraph(nn.Module):
@@ -156,18 +203,19 @@ class InteractionGraph(nn.Module):
 
     def __init__(self, net: ReducedNet, basis: torch.Tensor | None, positions: torch.Tensor, folded: bool) -> None:
         super().__init__()
-        self.encoder = net.encoder
+        self.net = net
         self.folded = folded
         self.trunk = net.trunk
         self.register_buffer("positions", positions.float())
         self.register_buffer("basis", basis.float() if basis is not None else torch.zeros(0))
 
-    def forward(self, interaction: torch.Tensor) -> torch.Tensor:
-        g = self.encoder(interaction)
-        if not self.folded:
-            return g
-        phi = self.trunk(self.positions) if self.trunk is not None else self.basis
-        return torch.einsum("nkm,bm->bnk", phi, g)
+    def forward(self, interaction: torch.Tensor) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+        g, forces = self.net.encode(interaction)
+        out = g
+        if self.folded:
+            phi = self.trunk(self.positions) if self.trunk is not None else self.basis
+            out = torch.einsum("nkm,bm->bnk", phi, g)
+        return out if forces is None else (out, forces)
 
 
 def weighted_basis(fields: torch.Tensor, volumes: torch.Tensor, modes: int) -> tuple[torch.Tensor, torch.Tensor]:

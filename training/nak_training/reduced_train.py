@@ -4,6 +4,10 @@ The loss is the DCM's own per-sample error, ‖u_true − û‖_{L2(Ω)} / ‖u_
 averaged over the batch. For a POD it is exact in coefficient space; a DeepONet's is estimated on
 `query_nodes` nodes drawn per step. +Reg adds λ_reg × the same relative misfit to the Kelvinlet field
 of fresh q samples, whose projection onto the basis (POD) costs one field over the mesh per sample.
+
+With `forces = true`, force_weight × the mean relative error of each grasp's force, |F̂ − F| / |F|
+(the figure nak eval reports), is added; F̂ is the sum of the force head over the grasp's points, plus
+the prior's own force for a +Res network on green-linear or green-tangent (what nak serves).
 """
 
 from __future__ import annotations
@@ -18,7 +22,7 @@ from .dataset import Dataset, Split
 from .errors import TrainingInputError
 from .kelvinlet import pad_points
 from .reduced import ReducedNet, ceiling, project, weighted_basis
-from .served import Nak
+from .served import Nak, served_grasp_forces
 from .train import Run
 
 CEILING_MODES = [8, 16, 32, 48, 64, 96, 128, 192, 256]
@@ -32,6 +36,46 @@ def interaction_batch(mesh_positions: torch.Tensor, split: Split) -> tuple[torch
         [torch.from_numpy(s.displacements) for s in split.samples],
     )
     return torch.cat([points.float(), displacements.float()], dim=-1), mask
+
+
+class GraspForces:
+    """What a split's force head is scored against: per sample the grasp each padded point counts for
+    ([S, K], −1 for padding), the finite-element force of each grasp and what the head must add to the
+    prior's ([S, G, 3], f64) and which grasps are real ([S, G])."""
+
+    def __init__(self, split: Split, width: int, prior: torch.Tensor | None, origin: Any) -> None:
+        missing = [s.index for s in split.samples if s.forces is None]
+        if missing:
+            raise TrainingInputError(
+                origin,
+                f"samples {missing[:5]} store no grasp forces (made before nak stored them: regenerate the data)",
+            )
+        grasps = max(len(s.forces) for s in split.samples if s.forces is not None)
+        self.point_grasp = torch.full((len(split), width), -1, dtype=torch.long)
+        self.truth = torch.zeros(len(split), grasps, 3, dtype=torch.float64)
+        self.real = torch.zeros(len(split), grasps, dtype=torch.bool)
+        for i, s in enumerate(split.samples):
+            assert s.forces is not None
+            self.point_grasp[i, : len(s.grasp_of_point)] = torch.from_numpy(s.grasp_of_point)
+            self.truth[i, : len(s.forces)] = torch.from_numpy(s.forces)
+            self.real[i, : len(s.forces)] = True
+        self.target = self.truth - (prior[:, :grasps] if prior is not None else 0.0)
+        self.size = self.truth.norm(dim=-1).clamp_min(1e-12)
+
+    def per_point_scale(self) -> torch.Tensor:
+        """RMS of the target per point and axis over the real grasps: the head's output unit."""
+        points = torch.stack([(self.point_grasp == g).sum(1) for g in range(self.truth.shape[1])], dim=1)
+        per_point = self.target[self.real] / points[self.real].clamp_min(1).unsqueeze(-1)
+        return per_point.pow(2).mean().sqrt().clamp_min(1e-9).reshape(1).float()
+
+    def relative_errors(self, forces: torch.Tensor, picks: torch.Tensor | slice = slice(None)) -> torch.Tensor:
+        """|F̂ − F| / |F| of every real grasp of the samples `picks`, for point forces [B, K, 3]."""
+        point_grasp, real = self.point_grasp[picks], self.real[picks]
+        grasps = real.shape[1]
+        member = (point_grasp.unsqueeze(-1) == torch.arange(grasps)).to(forces.dtype)  # [B, K, G]
+        summed = torch.einsum("bkg,bkd->bgd", member, forces)
+        error = (summed.double() - self.target[picks]).norm(dim=-1) / self.size[picks]
+        return error[real]
 
 
 def squared_norms(fields: torch.Tensor, volumes: torch.Tensor) -> torch.Tensor:
@@ -54,7 +98,11 @@ class ReducedTrainer(Run):
         self.mean_norm = self.train_norm.mean()
         self.train_points, self.train_mask = interaction_batch(self.mesh.positions, self.train)
         self.val_points, self.val_mask = interaction_batch(self.mesh.positions, self.val)
-        net = ReducedNet(config.architecture, config.modes, config.width, config.encoder)
+        net = ReducedNet(config.architecture, config.modes, config.width, config.encoder, config.forces)
+        self.train_forces = self._grasp_forces(self.train, "train", self.train_points.shape[1])
+        self.val_forces = self._grasp_forces(self.val, "val", self.val_points.shape[1])
+        if net.forces is not None and self.train_forces is not None:
+            net.forces.f_scale.copy_(self.train_forces.per_point_scale())
         positions = self.mesh.positions
         u = self.train_points[..., 3:][self.train_mask]
         net.encoder.set_statistics(x_mean=positions.mean(0), x_std=positions.std(0), u_scale=(u**2).mean(0).sqrt())
@@ -80,6 +128,17 @@ class ReducedTrainer(Run):
             return split.fields
         self.log(f"prior over the {name} split ({len(split)} samples)…")
         return split.fields - self.residual_prior(split, name)
+
+    def _grasp_forces(self, split: Split, name: str, width: int) -> GraspForces | None:
+        """The force targets of `split` when the network learns forces; on a Green's-function prior of a
+        +Res network, relative to the prior's own forces as nak serves them."""
+        if not self.config.forces:
+            return None
+        prior = None
+        if self.config.forces_mode == "residual":
+            assert self.nak is not None  # residual_prior needed it already
+            prior = served_grasp_forces(self.nak, self.dataset, name, split, self.config.prior, self.run_dir)
+        return GraspForces(split, width, prior, self.dataset.root)
 
     def _pod_basis(self) -> torch.Tensor:
         """The POD of the train targets, computed once per run (kept in basis.pt for resume and export)."""
@@ -115,7 +174,7 @@ class ReducedTrainer(Run):
     def _step(self) -> float:
         c = self.config
         picks = torch.randint(len(self.train), (c.batch,), generator=self.generator)
-        g = self.model.encoder(self.train_points[picks], self.train_mask[picks])
+        g, forces = self.model.encode(self.train_points[picks], self.train_mask[picks])
         if self.basis is not None:
             p = self.train_projection
             loss = self._coefficient_error(g, p["g"][picks], p["missed"][picks], self.train_norm[picks]).mean()
@@ -126,6 +185,8 @@ class ReducedTrainer(Run):
             loss = self._field_error(g, query, target, (truth**2).sum(-1) @ self.volumes[query]).mean()
         if self.q is not None:
             loss = loss + c.lambda_reg * self._regularization()
+        if forces is not None and self.train_forces is not None:
+            loss = loss + c.force_weight * self.train_forces.relative_errors(forces, picks).mean().float()
         return self._descend(loss)
 
     @staticmethod
@@ -169,7 +230,12 @@ class ReducedTrainer(Run):
     def validate(self) -> float:
         """Volume-weighted DCM of the served field on the val samples: exact, over every node."""
         self.model.eval()
-        g = self.model.encoder(self.val_points, self.val_mask)
+        g, forces = self.model.encode(self.val_points, self.val_mask)
+        if forces is not None and self.val_forces is not None:
+            errors = self.val_forces.relative_errors(forces)
+            self.log(
+                f"  val grasp forces: mean relative error {100 * float(errors.mean()):.1f} % ({len(errors)} grasps)"
+            )
         if self.basis is not None:
             p = self.val_projection
             errors = self._coefficient_error(g, p["g"], p["missed"], self.val_norm)
@@ -187,7 +253,7 @@ def load_reduced(run_dir: Path, config: TrainConfig) -> tuple[ReducedNet, torch.
     path = run_dir / "best.pt"
     if not path.is_file():
         raise TrainingInputError(path, "missing: train the model first")
-    net = ReducedNet(config.architecture, config.modes, config.width, config.encoder)
+    net = ReducedNet(config.architecture, config.modes, config.width, config.encoder, config.forces)
     net.load_state_dict(torch.load(path, weights_only=True))
     net.eval()
     if net.trunk is not None:

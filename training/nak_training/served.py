@@ -41,6 +41,26 @@ class Nak:
 def served_fields(nak: Nak, dataset: Dataset, split_name: str, split: Split, model: str, cache: Path) -> torch.Tensor:
     """`model`'s field, as nak serves it, for every sample of `split` (drawn from `split_name`): f32
     [S, N, 3]. Written by nak on first use and read from `cache` after."""
+    field = _served(nak, dataset, split_name, split, model, cache, "displacement")
+    if field.shape != tuple(split.fields.shape):
+        raise TrainingInputError(
+            cache, f"{model} fields of shape {field.shape}; the split's are {tuple(split.fields.shape)}"
+        )
+    return torch.from_numpy(field)
+
+
+def served_grasp_forces(
+    nak: Nak, dataset: Dataset, split_name: str, split: Split, model: str, cache: Path
+) -> torch.Tensor:
+    """`model`'s force on each grasp, as nak serves it, for every sample of `split`: f64 [S, G, 3], zero
+    past a sample's own grasps (from the same file as `served_fields`)."""
+    return torch.from_numpy(_served(nak, dataset, split_name, split, model, cache, "grasp_forces")).double()
+
+
+def _served(
+    nak: Nak, dataset: Dataset, split_name: str, split: Split, model: str, cache: Path, tensor: str
+) -> np.ndarray:
+    """Tensor `tensor` of `nak dataset fields` for `model`, rows in `split`'s sample order."""
     path = cache / f"{model}-{split_name}.safetensors"
     if not path.is_file():
         partial = path.with_suffix(".partial")
@@ -61,6 +81,11 @@ def served_fields(nak: Nak, dataset: Dataset, split_name: str, split: Split, mod
         tensors = load_file(str(path))
     except (OSError, SafetensorError) as e:
         raise TrainingInputError(path, f"unreadable ({e}); delete it to have nak write it again") from e
+    if tensor not in tensors:
+        raise TrainingInputError(
+            path,
+            f"has no {tensor!r} (written by an older nak, or {model} gives none): delete it to have nak write it again",
+        )
     row_of = {int(index): row for row, index in enumerate(tensors["index"])}
     missing = [s.index for s in split.samples if s.index not in row_of]
     if missing:
@@ -68,7 +93,5 @@ def served_fields(nak: Nak, dataset: Dataset, split_name: str, split: Split, mod
             path, f"has no field for samples {missing[:5]} (of {len(missing)}): delete it to have nak write it again"
         )
     rows = np.asarray([row_of[s.index] for s in split.samples])
-    field = tensors["displacement"][rows]
-    if field.shape != tuple(split.fields.shape):
-        raise TrainingInputError(path, f"fields of shape {field.shape}; the split's are {tuple(split.fields.shape)}")
-    return torch.from_numpy(field)
+    values: np.ndarray = tensors[tensor][rows]
+    return values

@@ -340,7 +340,7 @@ export class Renderer {
       this.canvas.height = height;
     }
   }
-  // The surface and its markers, then `graspers` ({from, to, color}, world points) on top.
+  // The surface and its markers, then `graspers` ({from, to, color, forceTip?}, world points) on top.
   draw(camera, scaleMax, graspers) {
     const gl = this.gl;
     this.resize();
@@ -363,16 +363,24 @@ export class Renderer {
     if (!graspers.length) return;
     gl.bindVertexArray(this.grasperVao);
     gl.bindBuffer(gl.ARRAY_BUFFER, this.grasperPositions);
-    gl.bufferData(gl.ARRAY_BUFFER, new Float32Array(graspers.flatMap((g) => [...g.from, ...g.to])), gl.DYNAMIC_DRAW);
+    // Three vertices per grasper: where it took hold, where it is, the tip of its force arrow.
+    const vertices = graspers.flatMap((g) => [...g.from, ...g.to, ...(g.forceTip ?? g.to)]);
+    gl.bufferData(gl.ARRAY_BUFFER, new Float32Array(vertices), gl.DYNAMIC_DRAW);
     gl.disable(gl.DEPTH_TEST);
     graspers.forEach((g, i) => {
       gl.uniform4fv(this.uniforms.markerColor, g.color);
       this.setPoints(0);
-      gl.drawArrays(gl.LINES, 2 * i, 2);
+      gl.drawArrays(gl.LINES, 3 * i, 2);
       this.setPoints(8);
-      gl.drawArrays(gl.POINTS, 2 * i, 1);
+      gl.drawArrays(gl.POINTS, 3 * i, 1);
       this.setPoints(14);
-      gl.drawArrays(gl.POINTS, 2 * i + 1, 1);
+      gl.drawArrays(gl.POINTS, 3 * i + 1, 1);
+      if (!g.forceTip) return;
+      gl.uniform4fv(this.uniforms.markerColor, FORCE_COLOR);
+      this.setPoints(0);
+      gl.drawArrays(gl.LINES, 3 * i + 1, 2);
+      this.setPoints(7);
+      gl.drawArrays(gl.POINTS, 3 * i + 2, 1);
     });
     gl.enable(gl.DEPTH_TEST);
     gl.bindVertexArray(this.vao);
@@ -390,6 +398,9 @@ export class Renderer {
     gl.drawElements(mode, indices.count, gl.UNSIGNED_INT, 0);
   }
 }
+
+// The force arrows: the force each grasper exerts on the tissue, from where the grasper is.
+const FORCE_COLOR = [0.35, 0.85, 1.0, 1];
 
 function link(gl, vertexSource, fragmentSource) {
   const program = gl.createProgram();

@@ -289,10 +289,25 @@ function frame() {
 }
 
 const GRASPER_COLORS = [[1, 1, 1, 1], [1, 0.7, 0.28, 1]];
+// Force arrows: metres of arrow per newton, and the longest drawn.
+const ARROW_M_PER_N = 0.01;
+const ARROW_MAX_M = 0.06;
 
-// Each grasper: a small dot where it took hold, a large one where it is now, a line between them.
+// Each grasper: a small dot where it took hold, a large one where it is now, a line between them and,
+// for models that give forces, an arrow along the force it exerts (answers list forces in the order
+// the request listed its graspers).
 function graspers() {
-  return state.graspers.flatMap((g, i) => (g ? [{ from: g.point, to: add(g.point, g.displacement), color: GRASPER_COLORS[i] }] : []));
+  const forces = state.shown ? state.shown.graspForces : [];
+  let held = 0;
+  return state.graspers.flatMap((g, i) => {
+    if (!g) return [];
+    const to = add(g.point, g.displacement);
+    const force = forces[held++];
+    const newtons = force ? Math.hypot(...force) : 0;
+    const length = Math.min(newtons * ARROW_M_PER_N, ARROW_MAX_M);
+    const forceTip = newtons > 0 ? add(to, force.map((f) => (f / newtons) * length)) : undefined;
+    return [{ from: g.point, to, color: GRASPER_COLORS[i], forceTip }];
+  });
 }
 
 // ---- for the browser test ----------------------------------------------------------------------

@@ -1,0 +1,175 @@
+"""Grasp forces against the finite elements, as nak serves them: per model, `nak eval`'s force error on
+the test split per subset; a figure of each served force component against the FEM's; and what a force
+head costs a request (the same graph timed through nak eval with its `forces` output cut away).
+
+python -m nak_training forces --data DATA --model pod-res-gt-forces-nl   (writes docs/reports/forces*)
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tempfile
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import onnx.utils  # noqa: E402
+import tomli_w  # noqa: E402
+from safetensors.numpy import load_file  # noqa: E402
+
+from .dataset import open_dataset  # noqa: E402
+from .errors import TrainingInputError  # noqa: E402
+from .served import Nak  # noqa: E402
+
+# The linearization the nonlinear networks' forces build on, scored beside them.
+PRIOR = "green-tangent"
+SUBSETS = ("single", "multi", "combined")
+TIMING_ROUNDS = 3
+
+
+def write_force_report(data: Path, models: list[Path], nak: Path, mesh: Path, out: Path, prior: str = PRIOR) -> Path:
+    """Scores `prior` (green-tangent or green-linear) and the model directories `models` (each with a
+    [forces] section) on the test split of `data`; writes `out`.md and the figure
+    `out`/served-against-fem.png."""
+    dataset = open_dataset(data)
+    truth = {s.index: s.forces for s in dataset.load("test").samples if s.forces is not None}
+    if not truth:
+        raise TrainingInputError(data, "its test split stores no grasp forces (regenerate it with nak datagen)")
+    for directory in models:
+        if "forces" not in tomllib.loads((directory / "manifest.toml").read_text()):
+            raise TrainingInputError(directory, "has no [forces] section: not a model with learned forces")
+    names = [prior, *(d.name for d in models)]
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp) / "models"
+        root.mkdir()
+        for directory in models:
+            (root / directory.name).symlink_to(directory.resolve(), target_is_directory=True)
+            without_forces(directory, root / f"{directory.name}-no-forces")
+        served = Nak(nak, mesh)
+        flags = ["--models", str(root), f"--{prior}"]
+        reports = {name: evaluation(served, data, name, flags, Path(tmp), latency=0) for name in names}
+        forces = {name: served_forces(served, data, name, flags, Path(tmp)) for name in names}
+        costs = {d.name: head_cost(served, data, d.name, flags, Path(tmp)) for d in models}
+    out.mkdir(parents=True, exist_ok=True)
+    figure = out / "served-against-fem.png"
+    plot(truth, forces, {s.index: s.subset for s in dataset.load("test").samples}, figure)
+    path = out.with_suffix(".md")
+    path.write_text(markdown(dataset.root, reports, costs, figure.relative_to(path.parent)))
+    return path
+
+
+def without_forces(model: Path, into: Path) -> None:
+    """A copy of `model` whose graph ends before its `forces` output (onnx.utils.extract_model) and
+    whose manifest has no [forces]: the same network without its force head, to time against it."""
+    into.mkdir()
+    graph = onnx.load(str(model / "model.onnx"))
+    kept = [o.name for o in graph.graph.output if o.name != "forces"]
+    onnx.utils.extract_model(str(model / "model.onnx"), str(into / "model.onnx"), ["interaction"], kept)
+    manifest = tomllib.loads((model / "manifest.toml").read_text())
+    manifest.pop("forces")
+    manifest["model"]["name"] = into.name
+    (into / "manifest.toml").write_text(tomli_w.dumps(manifest))
+    for extra in ("basis.safetensors", "config.toml"):
+        if (model / extra).is_file():
+            shutil.copy(model / extra, into / extra)
+
+
+def evaluation(served: Nak, data: Path, model: str, flags: list[str], tmp: Path, latency: int) -> dict[str, Any]:
+    output = tmp / f"{model}-eval.json"
+    served.run(
+        "eval", "--data", str(data), "--model", model, "--split", "test", "--output", str(output),
+        "--latency-samples", str(latency), *flags,
+    )  # fmt: skip
+    report: dict[str, Any] = json.loads(output.read_text())
+    return report
+
+
+def served_forces(served: Nak, data: Path, model: str, flags: list[str], tmp: Path) -> dict[int, np.ndarray]:
+    """Each test sample's served grasp forces [G, 3], by dataset index."""
+    output = tmp / f"{model}-fields.safetensors"
+    served.run(
+        "dataset", "fields", "--data", str(data), "--model", model, "--split", "test", "--out", str(output), *flags
+    )
+    tensors = load_file(str(output))
+    if "grasp_forces" not in tensors:
+        raise TrainingInputError(model, "gives no grasp forces")
+    return {int(i): f for i, f in zip(tensors["index"], tensors["grasp_forces"], strict=True)}
+
+
+def head_cost(served: Nak, data: Path, model: str, flags: list[str], tmp: Path) -> dict[str, float]:
+    """Network p50 (µs) with and without the force head, the better of TIMING_ROUNDS alternating runs each."""
+    best = {"with": float("inf"), "without": float("inf")}
+    for _ in range(TIMING_ROUNDS):
+        for key, name in (("with", model), ("without", f"{model}-no-forces")):
+            latency = evaluation(served, data, name, flags, tmp, latency=200)["latency_us"]
+            best[key] = min(best[key], float(latency["network"]["p50"]))
+            best[f"total_{key}"] = min(best.get(f"total_{key}", float("inf")), float(latency["total"]["p50"]))
+    return best
+
+
+def plot(
+    truth: dict[int, np.ndarray], forces: dict[str, dict[int, np.ndarray]], subset: dict[int, str], path: Path
+) -> None:
+    """One panel per model: every grasp's served force components against the FEM's, by subset."""
+    fig, axes = plt.subplots(1, len(forces), figsize=(4.2 * len(forces), 4.2), squeeze=False)
+    limit = max(float(np.abs(f).max()) for f in truth.values()) * 1.1
+    for ax, (name, served) in zip(axes[0], forces.items(), strict=True):
+        for kind, color in (("single", "tab:blue"), ("multi", "tab:orange")):
+            pairs = [(truth[i], served[i][: len(truth[i])]) for i in truth if subset.get(i) == kind and i in served]
+            if pairs:
+                fem = np.concatenate([t.reshape(-1) for t, _ in pairs])
+                got = np.concatenate([s.reshape(-1) for _, s in pairs])
+                ax.scatter(fem, got, s=6, alpha=0.6, color=color, label={"single": "one grasper", "multi": "two"}[kind])
+        ax.plot([-limit, limit], [-limit, limit], color="0.4", linewidth=0.8)
+        ax.set(xlim=(-limit, limit), ylim=(-limit, limit), title=name, xlabel="FEM force component (N)")
+        ax.set_aspect("equal")
+    axes[0][0].set_ylabel("served force component (N)")
+    axes[0][0].legend(loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def markdown(data: Path, reports: dict[str, dict[str, Any]], costs: dict[str, dict[str, float]], figure: Path) -> str:
+    lines = [
+        "# Grasp forces against the finite elements",
+        "",
+        f"Written by `python -m nak_training forces` on the test split of `{data}`; each model through the",
+        "serving engine (`nak eval`, `nak dataset fields`). Per grasp: |F̂ − F| / |F| (mean and median),",
+        "|F̂| / |F| (median) and the angle between F̂ and F (median).",
+        "",
+        "| Model | Subset | Grasps | mean \\|F̂ − F\\| / \\|F\\| | median | median \\|F̂\\| / \\|F\\| | median angle |",
+        "|---|---|---:|---:|---:|---:|---:|",
+    ]
+    for name, report in reports.items():
+        for subset in SUBSETS:
+            s = report["grasp_forces"].get(subset)
+            if s:
+                lines.append(
+                    f"| `{name}` | {subset} | {s['grasps']} | {100 * s['mean_relative_error']:.1f} % | "
+                    f"{100 * s['median_relative_error']:.1f} % | {s['median_magnitude_ratio']:.3f} | "
+                    f"{s['median_angle_deg']:.1f}° |"
+                )
+    lines += ["", f"![Served against FEM force components]({figure})", ""]
+    if costs:
+        lines += [
+            "What the force head costs a request: the same graph with its `forces` output cut away",
+            f"(`onnx.utils.extract_model`), both timed by `nak eval` one request at a time, the better of {TIMING_ROUNDS}",
+            "alternating runs of 200 requests each:",
+            "",
+            "| Model | network p50 with forces | without | total p50 with | without |",
+            "|---|---:|---:|---:|---:|",
+        ]
+        for name, c in costs.items():
+            lines.append(
+                f"| `{name}` | {c['with']:.1f} µs | {c['without']:.1f} µs | {c['total_with']:.1f} µs | "
+                f"{c['total_without']:.1f} µs |"
+            )
+        lines.append("")
+    return "\n".join(lines)
