@@ -114,6 +114,10 @@ def test_bad_input_is_refused_naming_the_file_or_key(coarse_data: Path, tmp_path
         parse_config(tiny_config(architecture="transformer"), "x.toml")
     with pytest.raises(TrainingInputError, match=r"unknown key\(s\) \['learning_rate'\]"):
         parse_config(tiny_config(learning_rate=1.0), "x.toml")
+    with pytest.raises(TrainingInputError, match=r"forces = true needs a reduced architecture"):
+        parse_config(tiny_config(forces=True), "x.toml")
+    with pytest.raises(TrainingInputError, match=r'force_mode = "residual" .* green-linear or green-tangent'):
+        parse_config(tiny_config(architecture="pod", forces=True, force_mode="residual"), "x.toml")
     bad = tmp_path / "bad.toml"
     bad.write_text('name = "x"\narchitecture = "pointnet"\nmethod = "res"\nepsilon = "large"\n')
     with pytest.raises(TrainingInputError, match=r"bad.toml: epsilon = 'large'"):
@@ -415,7 +419,10 @@ def test_a_force_head_is_trained_exported_and_served_as_the_sum_of_its_point_for
     errors = {}
     for name, steps, lr in (("trained", 300, 3e-3), ("untrained", 1, 1e-12)):
         values = dict(name=name, architecture="pod", prior=prior, modes=8, width=32, steps=steps, batch=8, lr=lr)
-        config = parse_config(tiny_config(**values, forces=True, force_weight=1.0, val_every=100), "tiny")
+        mode = "direct" if prior == "kelvinlet" else "residual"
+        config = parse_config(
+            tiny_config(**values, forces=True, force_mode=mode, force_weight=1.0, val_every=100), "tiny"
+        )
         run = tmp_path / name
         run.mkdir()
         ReducedTrainer(config, dataset, run, log=quiet, nak=nak).run()

@@ -20,6 +20,7 @@ FORMS = ("basis", "graph")
 # Green's functions (green-linear: linear elasticity at rest; green-tangent: the hyperelastic model
 # linearized about its gravity-preloaded state).
 PRIORS = ("kelvinlet", "green-linear", "green-tangent")
+FORCE_MODES = ("direct", "residual")
 SUBSETS = {"single": ("single",), "multi": ("multi",), "all": ("single", "multi")}
 
 
@@ -61,6 +62,9 @@ class TrainConfig:
     # finite-element grasp forces with this weight on their mean relative error (docs/design.md §7).
     forces: bool = False
     force_weight: float = 0.1
+    # "direct": the head's forces are served alone; "residual": added to the prior's own forces (+Res
+    # on green-linear or green-tangent, whose (G[S,S])⁻¹ u_S are the linearization's forces).
+    force_mode: str = "direct"
     seed: int = 0
     threads: int = 2
     description: str = ""
@@ -73,12 +77,6 @@ class TrainConfig:
     def reduced(self) -> bool:
         """Whether this is a reduced-basis network, served in the interaction form."""
         return self.architecture in REDUCED_ARCHITECTURES
-
-    @property
-    def forces_mode(self) -> str:
-        """How nak serves the learned forces: on top of the prior's own (+Res on a Green's-function prior,
-        whose (G[S,S])⁻¹ u_S are the linearization's forces), or alone."""
-        return "residual" if self.method == "res" and self.prior != "kelvinlet" else "direct"
 
     @property
     def subsets(self) -> tuple[str, ...]:
@@ -105,6 +103,7 @@ def parse_config(values: dict[str, Any], origin: str) -> TrainConfig:
         "form": FORMS,
         "encoder": ENCODERS,
         "prior": PRIORS,
+        "force_mode": FORCE_MODES,
     }
     for key, allowed in choices.items():
         if key in values and values[key] not in allowed:
@@ -124,6 +123,11 @@ def parse_config(values: dict[str, Any], origin: str) -> TrainConfig:
     if config.forces and not config.reduced:
         raise TrainingInputError(
             origin, "forces = true needs a reduced architecture (pod, deeponet): forces are per interaction point"
+        )
+    if config.force_mode == "residual" and not (config.method == "res" and config.prior != "kelvinlet"):
+        raise TrainingInputError(
+            origin,
+            'force_mode = "residual" adds to the prior\'s forces: it needs method = "res" on green-linear or green-tangent',
         )
     if not config.force_weight >= 0:
         raise TrainingInputError(origin, f"force_weight = {config.force_weight!r}: must be 0 or more")

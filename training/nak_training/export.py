@@ -88,7 +88,7 @@ def export(config: TrainConfig, dataset: Dataset, run_dir: Path, out_root: Path,
         "metrics": {"val_dcm": round(float(summary["val_dcm"]), 3), **ceiling_metrics(config, run_dir)},
         "provenance": provenance(config, dataset, summary, state),
         # The test error of the forces is written by `evaluate`, through nak eval.
-        **({"forces": {"mode": config.forces_mode}} if config.forces else {}),
+        **({"forces": {"mode": config.force_mode}} if config.forces else {}),
     }
     (directory / "manifest.toml").write_text(MANIFEST_HEADER + tomli_w.dumps(manifest))
     size = sum(f.stat().st_size for f in directory.iterdir() if f.name in ("model.onnx", BASIS_FILE))

@@ -31,6 +31,8 @@ import torch
 from torch import nn
 
 REDUCED_ARCHITECTURES = ("pod", "deeponet")
+# Squared distance of two points' normalized displacements below which they count as one grasp's.
+SAME_GRASP = 1e-10
 
 
 def mlp(widths: list[int]) -> nn.Sequential:
@@ -138,9 +140,14 @@ class SetEncoder(Encoder):
 
 
 class ForceHead(nn.Module):
-    """The force (N) on each interaction point: f_k = (A_k û_k + c_k) · f_scale, with A_k [3, 3] and c_k
-    from an MLP over the point's normalized input and the set's summary (its first layer split as in
-    SetEncoder, so the summary is transformed once per set)."""
+    """The force (N) on each interaction point: its grasp's share of (A_k û_k + c_k) · f_scale, with
+    A_k [3, 3] and c_k from an MLP over the point's normalized input and the set's summary (its first
+    layer split as in SetEncoder, so the summary is transformed once per set).
+
+    nak sums the points of each grasp, but a grasp's force does not grow with the nodes it holds (on the
+    phantom it hardly grows with the displacement either: the organ swings), so each point gives its
+    value divided by the number of points moved exactly as it is, which is its grasp's size: the
+    interaction input marks no grasps, and points that move alike are the only grasp it shows."""
 
     f_scale: torch.Tensor
 
@@ -155,7 +162,9 @@ class ForceHead(nn.Module):
         h = f @ w[:, :6].T + (summary @ w[:, 6:].T + self.first.bias).unsqueeze(1)
         out = self.rest(h)
         a = out[..., :9].unflatten(-1, (3, 3))
-        return ((a * f[..., 3:].unsqueeze(-2)).sum(-1) + out[..., 9:]) * self.f_scale
+        u = f[..., 3:]
+        alike = (((u.unsqueeze(2) - u.unsqueeze(1)) ** 2).sum(-1) < SAME_GRASP).to(f.dtype).sum(-1)  # [B, K]
+        return ((a * u.unsqueeze(-2)).sum(-1) + out[..., 9:]) * (self.f_scale / alike.unsqueeze(-1))
 
 
 class Trunk(nn.Module):

@@ -62,11 +62,9 @@ class GraspForces:
         self.target = self.truth - (prior[:, :grasps] if prior is not None else 0.0)
         self.size = self.truth.norm(dim=-1).clamp_min(1e-12)
 
-    def per_point_scale(self) -> torch.Tensor:
-        """RMS of the target per point and axis over the real grasps: the head's output unit."""
-        points = torch.stack([(self.point_grasp == g).sum(1) for g in range(self.truth.shape[1])], dim=1)
-        per_point = self.target[self.real] / points[self.real].clamp_min(1).unsqueeze(-1)
-        return per_point.pow(2).mean().sqrt().clamp_min(1e-9).reshape(1).float()
+    def scale(self) -> torch.Tensor:
+        """RMS of the target per grasp and axis: the head's output unit (it gives each grasp's share)."""
+        return self.target[self.real].pow(2).mean().sqrt().clamp_min(1e-9).reshape(1).float()
 
     def relative_errors(self, forces: torch.Tensor, picks: torch.Tensor | slice = slice(None)) -> torch.Tensor:
         """|F̂ − F| / |F| of every real grasp of the samples `picks`, for point forces [B, K, 3]."""
@@ -102,7 +100,7 @@ class ReducedTrainer(Run):
         self.train_forces = self._grasp_forces(self.train, "train", self.train_points.shape[1])
         self.val_forces = self._grasp_forces(self.val, "val", self.val_points.shape[1])
         if net.forces is not None and self.train_forces is not None:
-            net.forces.f_scale.copy_(self.train_forces.per_point_scale())
+            net.forces.f_scale.copy_(self.train_forces.scale())
         positions = self.mesh.positions
         u = self.train_points[..., 3:][self.train_mask]
         net.encoder.set_statistics(x_mean=positions.mean(0), x_std=positions.std(0), u_scale=(u**2).mean(0).sqrt())
@@ -135,7 +133,7 @@ class ReducedTrainer(Run):
         if not self.config.forces:
             return None
         prior = None
-        if self.config.forces_mode == "residual":
+        if self.config.force_mode == "residual":
             assert self.nak is not None  # residual_prior needed it already
             prior = served_grasp_forces(self.nak, self.dataset, name, split, self.config.prior, self.run_dir)
         return GraspForces(split, width, prior, self.dataset.root)
@@ -234,7 +232,8 @@ class ReducedTrainer(Run):
         if forces is not None and self.val_forces is not None:
             errors = self.val_forces.relative_errors(forces)
             self.log(
-                f"  val grasp forces: mean relative error {100 * float(errors.mean()):.1f} % ({len(errors)} grasps)"
+                f"  val grasp forces: mean relative error {100 * float(errors.mean()):.1f} %, median "
+                f"{100 * float(errors.median()):.1f} % ({len(errors)} grasps)"
             )
         if self.basis is not None:
             p = self.val_projection
