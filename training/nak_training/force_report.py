@@ -118,8 +118,9 @@ def plot(
 ) -> None:
     """One panel per model: every grasp's served force components against the FEM's, by subset."""
     fig, axes = plt.subplots(1, len(forces), figsize=(4.2 * len(forces), 4.2), squeeze=False)
-    limit = max(float(np.abs(f).max()) for f in truth.values()) * 1.1
+    largest = max(float(np.abs(f).max()) for f in truth.values())
     for ax, (name, served) in zip(axes[0], forces.items(), strict=True):
+        limit = 1.1 * max(largest, max(float(np.abs(f).max()) for f in served.values()))
         for kind, color in (("single", "tab:blue"), ("multi", "tab:orange")):
             pairs = [(truth[i], served[i][: len(truth[i])]) for i in truth if subset.get(i) == kind and i in served]
             if pairs:
