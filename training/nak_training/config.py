@@ -65,6 +65,8 @@ class TrainConfig:
     # "direct": the head's forces are served alone; "residual": added to the prior's own forces (+Res
     # on green-linear or green-tangent, whose (G[S,S])⁻¹ u_S are the linearization's forces).
     force_mode: str = "direct"
+    # The force head's width: its cost per interaction point.
+    force_width: int = 64
     seed: int = 0
     threads: int = 2
     description: str = ""
@@ -77,6 +79,11 @@ class TrainConfig:
     def reduced(self) -> bool:
         """Whether this is a reduced-basis network, served in the interaction form."""
         return self.architecture in REDUCED_ARCHITECTURES
+
+    @property
+    def head_width(self) -> int | None:
+        """The force head's width, or None for a network without one."""
+        return self.force_width if self.forces else None
 
     @property
     def subsets(self) -> tuple[str, ...]:
@@ -115,7 +122,17 @@ def parse_config(values: dict[str, Any], origin: str) -> TrainConfig:
         config = TrainConfig(**values)
     except TypeError as e:
         raise TrainingInputError(origin, str(e)) from e
-    for key in ("steps", "batch", "query_nodes", "val_every", "val_samples", "threads", "modes", "width"):
+    for key in (
+        "steps",
+        "batch",
+        "query_nodes",
+        "val_every",
+        "val_samples",
+        "threads",
+        "modes",
+        "width",
+        "force_width",
+    ):
         if int(getattr(config, key)) < 1:
             raise TrainingInputError(origin, f"{key} = {getattr(config, key)!r}: must be at least 1")
     if config.train_samples < 0:

@@ -151,10 +151,12 @@ class ForceHead(nn.Module):
 
     f_scale: torch.Tensor
 
-    def __init__(self, width: int) -> None:
+    def __init__(self, width: int, hidden: int) -> None:
+        """`width`: the encoder's (its summary has 2 × width values); `hidden`: the head's own, which sets
+        its cost per point."""
         super().__init__()
-        self.first = nn.Linear(6 + 2 * width, width)
-        self.rest = nn.Sequential(nn.GELU(), nn.Linear(width, width), nn.GELU(), nn.Linear(width, 12))
+        self.first = nn.Linear(6 + 2 * width, hidden)
+        self.rest = nn.Sequential(nn.GELU(), nn.Linear(hidden, hidden), nn.GELU(), nn.Linear(hidden, 12))
         self.register_buffer("f_scale", torch.ones(1))
 
     def forward(self, f: torch.Tensor, summary: torch.Tensor) -> torch.Tensor:
@@ -190,12 +192,13 @@ class ReducedNet(nn.Module):
     """The encoder, and the trunk for a DeepONet (a POD's basis is data, not parameters)."""
 
     def __init__(
-        self, architecture: str, modes: int, width: int, encoder: str = "linear", forces: bool = False
+        self, architecture: str, modes: int, width: int, encoder: str = "linear", force_width: int | None = None
     ) -> None:
+        """`force_width`: the force head's width (None: no force head)."""
         super().__init__()
         self.encoder: Encoder = SetEncoder(modes, width) if encoder == "linear" else PooledEncoder(modes, width)
         self.trunk = Trunk(modes, width) if architecture == "deeponet" else None
-        self.forces = ForceHead(width) if forces else None
+        self.forces = ForceHead(width, force_width) if force_width is not None else None
 
     def encode(
         self, interaction: torch.Tensor, mask: torch.Tensor | None = None

@@ -96,7 +96,7 @@ class ReducedTrainer(Run):
         self.mean_norm = self.train_norm.mean()
         self.train_points, self.train_mask = interaction_batch(self.mesh.positions, self.train)
         self.val_points, self.val_mask = interaction_batch(self.mesh.positions, self.val)
-        net = ReducedNet(config.architecture, config.modes, config.width, config.encoder, config.forces)
+        net = ReducedNet(config.architecture, config.modes, config.width, config.encoder, config.head_width)
         self.train_forces = self._grasp_forces(self.train, "train", self.train_points.shape[1])
         self.val_forces = self._grasp_forces(self.val, "val", self.val_points.shape[1])
         if net.forces is not None and self.train_forces is not None:
@@ -252,7 +252,7 @@ def load_reduced(run_dir: Path, config: TrainConfig) -> tuple[ReducedNet, torch.
     path = run_dir / "best.pt"
     if not path.is_file():
         raise TrainingInputError(path, "missing: train the model first")
-    net = ReducedNet(config.architecture, config.modes, config.width, config.encoder, config.forces)
+    net = ReducedNet(config.architecture, config.modes, config.width, config.encoder, config.head_width)
     net.load_state_dict(torch.load(path, weights_only=True))
     net.eval()
     if net.trunk is not None:
