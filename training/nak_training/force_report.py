@@ -39,7 +39,8 @@ def write_force_report(data: Path, models: list[Path], nak: Path, mesh: Path, ou
     [forces] section) on the test split of `data`; writes `out`.md and the figure
     `out`/served-against-fem.png."""
     dataset = open_dataset(data)
-    truth = {s.index: s.forces for s in dataset.load("test").samples if s.forces is not None}
+    test = dataset.load("test").samples
+    truth = {s.index: s.forces for s in test if s.forces is not None}
     if not truth:
         raise TrainingInputError(data, "its test split stores no grasp forces (regenerate it with nak datagen)")
     for directory in models:
@@ -59,7 +60,7 @@ def write_force_report(data: Path, models: list[Path], nak: Path, mesh: Path, ou
         costs = {d.name: head_cost(served, data, d.name, flags, Path(tmp)) for d in models}
     out.mkdir(parents=True, exist_ok=True)
     figure = out / "served-against-fem.png"
-    plot(truth, forces, {s.index: s.subset for s in dataset.load("test").samples}, figure)
+    plot(truth, forces, {s.index: s.subset for s in test}, figure)
     path = out.with_suffix(".md")
     path.write_text(markdown(dataset.root, reports, costs, figure.relative_to(path.parent)))
     return path

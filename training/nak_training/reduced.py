@@ -217,7 +217,6 @@ class InteractionGraph(nn.Module):
         super().__init__()
         self.net = net
         self.folded = folded
-        self.trunk = net.trunk
         self.register_buffer("positions", positions.float())
         self.register_buffer("basis", basis.float() if basis is not None else torch.zeros(0))
 
@@ -225,7 +224,7 @@ class InteractionGraph(nn.Module):
         g, forces = self.net.encode(interaction)
         out = g
         if self.folded:
-            phi = self.trunk(self.positions) if self.trunk is not None else self.basis
+            phi = self.net.trunk(self.positions) if self.net.trunk is not None else self.basis
             out = torch.einsum("nkm,bm->bnk", phi, g)
         return out if forces is None else (out, forces)
 
