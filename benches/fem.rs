@@ -3,8 +3,9 @@
 //! iteration and predictor) and an energy evaluation (each line-search trial), at a smooth
 //! deformation of a few percent strain; and the linear algebra of a correction, on the reference
 //! tangent (the pattern, ordering and fill of every tangent): a numeric f32 Cholesky
-//! factorization, a solve with that factor (the preconditioner, twice a pass over its 44 MB) and
-//! a product with the f64 tangent (one of each per conjugate-gradient iteration).
+//! factorization, a solve with that factor (the preconditioner, twice a pass over its 44 MB: nak's
+//! own sweeps, and faer's supernodal solve they replace) and a product with the f64 tangent (one of
+//! each per conjugate-gradient iteration).
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use faer::sparse::linalg::matmul::sparse_dense_matmul;
@@ -52,6 +53,12 @@ fn fem(c: &mut Criterion) {
         b.iter(|| {
             x.copy_from_slice(&rhs);
             factor.solve_in_place(&mut x);
+        })
+    });
+    group.bench_function("preconditioner solve (f32 factor, faer's own)", |b| {
+        b.iter(|| {
+            x.copy_from_slice(&rhs);
+            factor.solve_with_faer(&mut x);
         })
     });
     let mut product = vec![0.0; n];

@@ -450,7 +450,14 @@ fn data_of_two_volumetric_laws_is_never_mixed() {
         assert!(info.contains(&format!("\"volumetric_law\": \"{law}\"")), "{info}");
         // The solver's settings are recorded beside the law.
         assert!(info.contains("\"intermediate_tolerance\": 0.001"), "{info}");
+        assert!(info.contains("\"rings\": 2"), "{info}");
     }
+    // Resumed with the graspers' neighbourhood solved another way, a set is refused, naming how.
+    let other_solver = [&new[..], &["--elimination-rings", "0"]].concat();
+    refused(
+        &datagen_box(&path("new"), &cache, &other_solver),
+        &["holds another dataset", "solver", "\"rings\":2", "\"elimination\":null"],
+    );
     // Each law has its own gravity preload in the cache: neither is read for the other.
     let preloads = std::fs::read_dir(&cache)
         .unwrap()

@@ -1,6 +1,7 @@
 //! Mooney–Rivlin finite elements against finite differences, the linear solver, an analytic
 //! homogeneous stretch and mesh refinement; Newton's energy descent and its handling of inverted
-//! elements; corrections from an earlier factor against exact ones.
+//! elements; corrections from an earlier factor against exact ones, the graspers' neighbourhood
+//! eliminated against global Newton alone, and the preconditioner's sweeps against faer's solve.
 
 mod common;
 
@@ -8,8 +9,9 @@ use std::path::Path;
 
 use common::msh_fixture::Fixture;
 use faer::Mat;
+use nak::fem::factor::Factor;
 use nak::fem::hyperelastic::MooneyRivlin;
-use nak::fem::nonlinear::{Equilibrium, Hyperelastic, Load, NewtonOptions};
+use nak::fem::nonlinear::{Elimination, Equilibrium, Hyperelastic, Load, NewtonOptions, SolveStats};
 use nak::fem::preload::Preloaded;
 use nak::fem::{GreenFunctions, LinearSystem, Stiffness, solve_dirichlet};
 use nak::mesh::{MeshConfig, TetMesh, VolumetricLaw};
@@ -322,12 +324,9 @@ fn newton_decreases_the_energy_and_converges_under_gravity_and_a_large_grasp() {
     }
 }
 
-#[test]
-fn a_deep_poke_is_solved_with_feasible_steps_only() {
+/// Pushes the grasp face's centre node of a 30 mm cube (cells of 10 mm) 25 mm in, without gravity.
+fn deep_poke(elimination: Option<Elimination>) -> (Hyperelastic, Equilibrium) {
     let m = mesh(&Fixture::grid(3));
-    // Push the grasp face's centre node 25 mm into a 30 mm cube (cells are 10 mm): the linear
-    // predictor over the whole load would fold the neighbouring elements, so it is shortened to
-    // stop short of the first collapse, and no trial state ever inverts.
     let centre = m.node_sets["grasp_01"]
         .iter()
         .copied()
@@ -336,11 +335,36 @@ fn a_deep_poke_is_solved_with_feasible_steps_only() {
             (p[1] - 0.01).abs() < 1e-9 && (p[2] - 0.01).abs() < 1e-9
         })
         .unwrap();
-    let prescribed = [(centre, [-0.025, 0.0, 0.0])];
-    let (solver, result) = solve_without_gravity(&m, &prescribed);
-    assert!(result.stats.shortened_predictors > 0, "{:?}", result.stats);
-    assert_eq!(result.stats.inverted_trials, 0, "{:?}", result.stats);
-    assert!(solver.energy(&result.displacement, 0.0).is_some());
+    let options = NewtonOptions {
+        elimination,
+        ..NewtonOptions::default()
+    };
+    let solver = Hyperelastic::new(&m, false, options).unwrap();
+    let start = vec![[0.0; 3]; m.node_count()];
+    let result = solver
+        .solve(Load {
+            start: &start,
+            prescribed: &[(centre, [-0.025, 0.0, 0.0])],
+            body_from: 0.0,
+            body_to: 0.0,
+        })
+        .unwrap();
+    (solver, result)
+}
+
+#[test]
+fn a_deep_poke_is_solved_with_feasible_steps_only() {
+    // The linear predictor over the whole load would fold the elements around the node: solved
+    // globally, it is shortened to stop short of the first collapse; with the node's neighbourhood
+    // eliminated, that neighbourhood follows by local steps. Either way no trial state inverts.
+    for elimination in [None, Some(Elimination::default())] {
+        let (solver, result) = deep_poke(elimination);
+        if elimination.is_none() {
+            assert!(result.stats.shortened_predictors > 0, "{:?}", result.stats);
+        }
+        assert_eq!(result.stats.inverted_trials, 0, "{:?}", result.stats);
+        assert!(solver.energy(&result.displacement, 0.0).is_some());
+    }
 }
 
 #[test]
@@ -381,22 +405,50 @@ fn corrections_from_an_earlier_factor_reach_the_same_equilibrium_with_fewer_fact
     let (reused, exact) = (solve(true), solve(false));
     assert!(reused.stats.krylov_iterations > 0, "{:?}", reused.stats);
     assert_eq!(exact.stats.krylov_iterations, 0);
+    same_equilibrium_for_less(&reused, &exact, |s| s.factorizations);
+}
+
+/// `cheaper` reaches `reference`'s equilibrium with less of what `cost` counts. Both stop at
+/// ‖r‖ ≤ 1e-6 of the load; the displacement each leaves undone is about that fraction of the field,
+/// so two answers agree to a few 1e-6 of it.
+fn same_equilibrium_for_less(cheaper: &Equilibrium, reference: &Equilibrium, cost: fn(&SolveStats) -> usize) {
     assert!(
-        reused.stats.factorizations < exact.stats.factorizations,
+        cost(&cheaper.stats) < cost(&reference.stats),
         "{:?} against {:?}",
-        reused.stats,
-        exact.stats
+        cheaper.stats,
+        reference.stats
     );
-    // Both stop at ‖r‖ ≤ 1e-6 of the load; the displacement each leaves undone is about that
-    // fraction of the field, so two answers agree to a few 1e-6 of it.
-    let norm = |u: &[[f64; 3]]| u.iter().flatten().map(|v| v * v).sum::<f64>().sqrt();
-    let difference: Vec<[f64; 3]> = reused
-        .displacement
-        .iter()
-        .zip(&exact.displacement)
-        .map(|(a, b)| std::array::from_fn(|k| a[k] - b[k]))
+    let relative = relative_difference(&cheaper.displacement, &reference.displacement);
+    assert!(relative < 1e-5, "relative difference {relative:.2e}");
+}
+
+#[test]
+fn eliminating_the_grasps_neighbourhood_reaches_the_same_equilibrium_in_fewer_global_iterations() {
+    let (_, eliminated) = deep_poke(Some(Elimination::default()));
+    let (_, global) = deep_poke(None);
+    assert!(eliminated.stats.local_iterations > 0, "{:?}", eliminated.stats);
+    assert_eq!(global.stats.local_iterations, 0);
+    same_equilibrium_for_less(&eliminated, &global, |s| s.newton_iterations);
+}
+
+#[test]
+fn the_preconditioners_own_sweeps_solve_as_faer_does() {
+    // The phantom's tangent at rest in f32 (4,047 supernodes, most one node wide): its sweeps and
+    // faer's supernodal solve agree to the f32 round-off of the factor.
+    let m = nak::mesh::load(&nak::mesh::MeshSource::Embedded).unwrap();
+    let solver = Hyperelastic::new(&m, true, NewtonOptions::default()).unwrap();
+    let (tangent, _) = solver.linearize(&vec![[0.0; 3]; m.node_count()]).unwrap();
+    let mut factor = solver.tangent_factor::<f32>();
+    factor.factorize(tangent.as_ref()).unwrap();
+    let rhs: Vec<f64> = (0..tangent.nrows())
+        .map(|i| ((i * 7919) % 1000) as f64 / 1000.0 - 0.5)
         .collect();
-    let relative = norm(&difference) / norm(&exact.displacement);
+    let (mut swept, mut reference) = (rhs.clone(), rhs);
+    factor.solve_in_place(&mut swept);
+    factor.solve_with_faer(&mut reference);
+    let norm = |v: &[f64]| v.iter().map(|x| x * x).sum::<f64>().sqrt();
+    let difference: Vec<f64> = swept.iter().zip(&reference).map(|(a, b)| a - b).collect();
+    let relative = norm(&difference) / norm(&reference);
     assert!(relative < 1e-5, "relative difference {relative:.2e}");
 }
 

@@ -6,7 +6,7 @@ use anyhow::Context;
 use nak::data::dataset::{DatasetInfo, SPLIT_RULE, SolverLimits};
 use nak::data::generate::{NonlinearTally, generate_linear, generate_nonlinear};
 use nak::data::shard::Shard;
-use nak::fem::nonlinear::NewtonOptions;
+use nak::fem::nonlinear::{Elimination, NewtonOptions};
 use nak::fem::preload::Preloaded;
 use nak::fem::{GreenFunctions, Stiffness};
 use nak::mesh::TetMesh;
@@ -45,6 +45,13 @@ pub struct DatagenArgs {
     /// one at 1e-6); looser means fewer Newton iterations on the way.
     #[arg(long, default_value_t = NewtonOptions::default().intermediate_tolerance)]
     intermediate_tolerance: f64,
+    /// Nonlinear: rings of nodes around the graspers solved alone after every global Newton step
+    /// (nonlinear elimination; 0 solves every node only globally).
+    #[arg(long, default_value_t = Elimination::default().rings)]
+    elimination_rings: usize,
+    /// Nonlinear, with elimination: the first load step, as a fraction of the grasp.
+    #[arg(long, default_value_t = Elimination::default().initial_step)]
+    elimination_step: f64,
     /// Make only shard I of N (0-based): the chunks c with c mod N = I, in a directory of its own
     /// (--out); `nak dataset join` assembles the N shard directories into the whole dataset.
     #[arg(long, value_name = "I/N")]
@@ -73,6 +80,10 @@ pub fn run(args: DatagenArgs, mesh: &TetMesh, cache: PathBuf) -> anyhow::Result<
         Preset::Paper => (5_000, 5_400),
         Preset::Tiny => (12, 8),
     };
+    let elimination = (args.elimination_rings > 0).then_some(Elimination {
+        rings: args.elimination_rings,
+        initial_step: args.elimination_step,
+    });
     let info = DatasetInfo {
         mesh_name: mesh.config.name.clone(),
         mesh_hash: mesh.content_hash.clone(),
@@ -91,6 +102,7 @@ pub fn run(args: DatagenArgs, mesh: &TetMesh, cache: PathBuf) -> anyhow::Result<
             max_newton_iterations: args.max_newton_iterations,
             max_step_cuts: args.max_step_cuts,
             intermediate_tolerance: args.intermediate_tolerance,
+            elimination,
         }),
         volumetric_law: matches!(args.regime, Regime::Nonlinear).then_some(mesh.config.volumetric_law),
         shard: args.shard,
@@ -120,6 +132,7 @@ pub fn run(args: DatagenArgs, mesh: &TetMesh, cache: PathBuf) -> anyhow::Result<
                 max_iterations: args.max_newton_iterations,
                 max_step_cuts: args.max_step_cuts,
                 intermediate_tolerance: args.intermediate_tolerance,
+                elimination,
                 ..NewtonOptions::default()
             };
             let preloaded = Preloaded::load_or_compute(mesh, &cache, options)
@@ -177,21 +190,25 @@ fn print_nonlinear_tally(t: &NonlinearTally) {
     let median = seconds.get(seconds.len() / 2).copied().unwrap_or(0.0);
     let mean = seconds.iter().sum::<f64>() / t.attempted.max(1) as f64;
     println!(
-        "nonlinear: {} samples, {} failed ({:.1} %); per sample on one core {:.2} s median / {:.2} s mean; \
-         per converged sample: Newton iterations {:.1} mean / {} max, load steps {:.1} mean, factorizations {:.1} \
-         mean, conjugate-gradient iterations {:.1} mean; {} with step cuts, {} with shifted tangents",
+        "nonlinear: {} samples, {} failed ({:.1} %); per sample on one core {:.2} s median / {:.2} s mean / {:.2} s \
+         slowest; per converged sample: Newton iterations {:.1} mean / {} max, load steps {:.1} mean, \
+         factorizations {:.1} mean, conjugate-gradient iterations {:.1} mean, local Newton iterations around the \
+         graspers {:.1} mean; {} with step cuts, {} with shifted tangents, {} load steps undone for jumping branches",
         t.attempted,
         t.failed,
         100.0 * t.failed as f64 / t.attempted.max(1) as f64,
         median,
         mean,
+        seconds.last().copied().unwrap_or(0.0),
         per_converged(t.newton_iterations),
         t.max_newton_iterations,
         per_converged(t.load_steps),
         per_converged(t.factorizations),
         per_converged(t.krylov_iterations),
+        per_converged(t.local_iterations),
         t.cut,
         t.shifted,
+        t.branch_jumps,
     );
     if !t.failure_reasons.is_empty() {
         let reasons: Vec<String> = t.failure_reasons.iter().map(|(why, n)| format!("{n} {why}")).collect();
@@ -200,13 +217,15 @@ fn print_nonlinear_tally(t: &NonlinearTally) {
     let p = &t.profile;
     let total: f64 = seconds.iter().sum::<f64>().max(1e-9);
     let share = |d: std::time::Duration| 100.0 * d.as_secs_f64() / total;
-    let stages = p.assembly + p.factorization + p.linear_solve + p.line_search;
+    let stages = p.assembly + p.factorization + p.linear_solve + p.line_search + p.elimination;
     println!(
-        "time: assembly {:.0} %, factorization {:.0} %, linear solves {:.0} %, line search {:.0} %, other {:.0} %",
+        "time: assembly {:.0} %, factorization {:.0} %, linear solves {:.0} %, line search {:.0} %, graspers' \
+         neighbourhood {:.0} %, other {:.0} %",
         share(p.assembly),
         share(p.factorization),
         share(p.linear_solve),
         share(p.line_search),
+        share(p.elimination),
         (100.0 - share(stages)).max(0.0),
     );
 }

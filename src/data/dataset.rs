@@ -17,7 +17,7 @@ use serde::{Deserialize, Serialize};
 use super::shard::Shard;
 use super::{GraspSampler, SamplingError};
 use crate::engine::Grasp;
-use crate::fem::nonlinear::{NewtonOptions, SolveStats};
+use crate::fem::nonlinear::{Elimination, NewtonOptions, SolveStats};
 use crate::mesh::{TetMesh, VolumetricLaw};
 
 #[derive(Debug, thiserror::Error)]
@@ -82,6 +82,10 @@ pub struct SolverLimits {
     /// Absent in datasets made before it could be set: they used 1e-3.
     #[serde(default = "default_intermediate_tolerance")]
     pub intermediate_tolerance: f64,
+    /// How the graspers' neighbourhood was eliminated; `null`, or absent in datasets made before
+    /// it existed, when it was not.
+    #[serde(default)]
+    pub elimination: Option<Elimination>,
 }
 
 fn default_intermediate_tolerance() -> f64 {

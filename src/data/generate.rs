@@ -40,6 +40,9 @@ pub struct NonlinearTally {
     pub shifted: usize,
     pub factorizations: usize,
     pub krylov_iterations: usize,
+    pub local_iterations: usize,
+    /// Load steps undone because they jumped to another equilibrium branch.
+    pub branch_jumps: usize,
     /// Per-sample solve times (s), failed ones included, in the order the samples finished: their
     /// sum divided by `attempted` is the cost of one sample on one core.
     pub solve_seconds: Vec<f64>,
@@ -53,6 +56,8 @@ impl NonlinearTally {
         self.attempted += 1;
         self.factorizations += stats.factorizations;
         self.krylov_iterations += stats.krylov_iterations;
+        self.local_iterations += stats.local_iterations;
+        self.branch_jumps += stats.branch_jumps;
         self.profile.add(profile);
         self.newton_iterations += stats.newton_iterations;
         self.load_steps += stats.load_steps;
@@ -212,19 +217,23 @@ fn generate(
         samples: total,
         ..Generated::default()
     };
+    let mut pending = Vec::new();
     for (chunk, is_complete) in complete.into_iter().enumerate().filter(|(c, _)| owned(c)) {
-        let range = range_of(chunk);
         if is_complete {
             result.chunks_skipped += 1;
-            done.fetch_add(range.len(), Ordering::Relaxed);
+            done.fetch_add(range_of(chunk).len(), Ordering::Relaxed);
             progress(done.load(Ordering::Relaxed), total);
-            continue;
+        } else {
+            pending.push(chunk);
         }
-        let mut samples: Vec<SampleRecord> = range
-            .clone()
+    }
+    // Chunks run side by side as well as their samples: a core that has finished its part of one
+    // chunk starts the next instead of waiting for the chunk's slowest sample (nonlinear samples vary
+    // from a second to a minute). Each chunk is written when its own samples are done.
+    pending.par_iter().with_max_len(1).try_for_each(|&chunk| {
+        let mut samples: Vec<SampleRecord> = range_of(chunk)
             .map(|i| dataset::draw(&sampler, info, i as u64))
             .collect::<Result<_, _>>()?;
-        // One sample per task: nonlinear samples vary from a second to a minute.
         let fields: Vec<Vec<f32>> = samples
             .par_iter_mut()
             .with_max_len(1)
@@ -234,8 +243,8 @@ fn generate(
                 f
             })
             .collect::<Result<_, _>>()?;
-        dataset::write_chunk(dir, chunk, mesh.node_count(), &samples, &fields)?;
-        result.chunks_written += 1;
-    }
+        dataset::write_chunk(dir, chunk, mesh.node_count(), &samples, &fields)
+    })?;
+    result.chunks_written = pending.len();
     Ok(result)
 }

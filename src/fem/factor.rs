@@ -16,10 +16,15 @@ use faer::sparse::linalg::cholesky::{LltRef, SymbolicCholesky};
 use faer::sparse::linalg::matmul::sparse_dense_matmul;
 use faer::{Accum, Conj, MatMut, MatRef, Par, Side};
 
+use super::supernodal::SupernodalLayout;
+
 /// The precision a factor is stored in.
 pub trait Precision: faer::traits::ComplexField + Copy + Default + 'static {
     fn narrow(value: f64) -> Self;
     fn widen(self) -> f64;
+    /// x ← (L Lᵀ)⁻¹ x by [`SupernodalLayout`]'s sweeps, if they exist for this precision (f32, the
+    /// precision of the preconditioner every CG iteration applies); `false` leaves it to faer.
+    fn solve_supernodal(layout: &SupernodalLayout, values: &[Self], x: &mut [Self], scratch: &mut Vec<Self>) -> bool;
 }
 
 impl Precision for f64 {
@@ -29,6 +34,9 @@ impl Precision for f64 {
     fn widen(self) -> f64 {
         self
     }
+    fn solve_supernodal(_: &SupernodalLayout, _: &[Self], _: &mut [Self], _: &mut Vec<Self>) -> bool {
+        false
+    }
 }
 
 impl Precision for f32 {
@@ -37,6 +45,10 @@ impl Precision for f32 {
     }
     fn widen(self) -> f64 {
         f64::from(self)
+    }
+    fn solve_supernodal(layout: &SupernodalLayout, values: &[Self], x: &mut [Self], scratch: &mut Vec<Self>) -> bool {
+        layout.solve_in_place(values, x, scratch);
+        true
     }
 }
 
@@ -50,6 +62,10 @@ pub struct TangentFactor<T: Precision> {
     /// A right-hand side in `T`.
     vector: Vec<T>,
     scratch: MemBuffer,
+    /// Where the factor's supernodes lie, for solves that do not go through faer.
+    layout: Option<SupernodalLayout>,
+    /// The sweeps' scratch vector.
+    sweep: Vec<T>,
     /// Whether `values` holds a complete factor.
     valid: bool,
 }
@@ -143,6 +159,8 @@ impl<T: Precision> TangentFactor<T> {
             symbolic.solve_in_place_scratch::<T>(1, par),
         ]));
         Self {
+            layout: SupernodalLayout::new(&symbolic),
+            sweep: Vec::new(),
             symbolic,
             matrix: Vec::new(),
             values: Vec::new(),
@@ -177,16 +195,35 @@ impl<T: Precision> Factor for TangentFactor<T> {
     }
 
     fn solve_in_place(&mut self, x: &mut [f64]) {
+        self.solve_narrowed(x, false);
+    }
+}
+
+impl<T: Precision> TangentFactor<T> {
+    /// x ← A⁻¹ x by faer's own supernodal solve: the reference the sweeps of [`SupernodalLayout`] are
+    /// tested and benchmarked against.
+    pub fn solve_with_faer(&mut self, x: &mut [f64]) {
+        self.solve_narrowed(x, true);
+    }
+
+    fn solve_narrowed(&mut self, x: &mut [f64], with_faer: bool) {
         debug_assert!(self.valid, "solve with no factor");
         let n = x.len();
         self.vector.clear();
         self.vector.extend(x.iter().map(|&v| T::narrow(v)));
-        LltRef::new(&self.symbolic, &self.values).solve_in_place_with_conj(
-            Conj::No,
-            MatMut::from_column_major_slice_mut(&mut self.vector, n, 1),
-            Par::Seq,
-            MemStack::new(&mut self.scratch),
-        );
+        let swept = !with_faer
+            && self
+                .layout
+                .as_ref()
+                .is_some_and(|layout| T::solve_supernodal(layout, &self.values, &mut self.vector, &mut self.sweep));
+        if !swept {
+            LltRef::new(&self.symbolic, &self.values).solve_in_place_with_conj(
+                Conj::No,
+                MatMut::from_column_major_slice_mut(&mut self.vector, n, 1),
+                Par::Seq,
+                MemStack::new(&mut self.scratch),
+            );
+        }
         for (x, v) in x.iter_mut().zip(&self.vector) {
             *x = v.widen();
         }

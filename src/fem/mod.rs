@@ -8,6 +8,7 @@ pub mod linear;
 pub mod nonlinear;
 pub mod ordering;
 pub mod preload;
+pub mod supernodal;
 
 pub use green::{GreenError, GreenFunctions, Stiffness};
 pub use linear::{DofMap, LinearSystem, nodal_forces, solve_dirichlet};
