@@ -1,6 +1,8 @@
 //! `nak datagen`: a dataset from the paper's distribution with finite-element ground truth.
 
+use std::io::IsTerminal;
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicUsize, Ordering};
 
 use anyhow::Context;
 use nak::data::dataset::{DatasetInfo, SPLIT_RULE, SolverLimits};
@@ -112,9 +114,22 @@ pub fn run(args: DatagenArgs, mesh: &TetMesh, cache: PathBuf) -> anyhow::Result<
             .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
     );
     let started = std::time::Instant::now();
+    // Written to a file or a pipe (a long run in the background), the bar is hidden: a line per
+    // percent says how far the run is instead.
+    let terminal = std::io::stderr().is_terminal();
+    let logged = AtomicUsize::new(usize::MAX);
     let update = |done: usize, total: usize| {
         bar.set_length(total as u64);
         bar.set_position(done as u64);
+        let percent = 100 * done / total.max(1);
+        if !terminal && logged.swap(percent, Ordering::Relaxed) != percent {
+            eprintln!(
+                "{}: {done}/{total} ({percent} %), {} elapsed, ETA {}",
+                bar.message(),
+                indicatif::HumanDuration(started.elapsed()),
+                indicatif::HumanDuration(bar.eta())
+            );
+        }
     };
     let generated = match args.regime {
         Regime::Linear => {

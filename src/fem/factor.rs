@@ -78,64 +78,66 @@ pub trait Factor {
     fn factorize(&mut self, matrix: SparseColMatRef<'_, usize, f64>) -> Result<(), LltError>;
     /// x ← A⁻¹ x with the factored A.
     fn solve_in_place(&mut self, x: &mut [f64]);
-    /// Solves `matrix · x = rhs` to ‖rhs − matrix·x‖ ≤ `tolerance`·‖rhs‖ by conjugate gradients
-    /// preconditioned with this factor, starting from x = 0. `matrix` must hold both triangles. The
-    /// factor must be of a positive definite matrix; `matrix` need not be (see [`Krylov`]).
-    fn conjugate_gradients(
-        &mut self,
-        matrix: SparseColMatRef<'_, usize, f64>,
-        rhs: &[f64],
-        x: &mut [f64],
-        tolerance: f64,
-        max_iterations: usize,
-    ) -> Krylov {
-        let n = rhs.len();
-        x.fill(0.0);
-        let goal = tolerance * norm(rhs);
-        let mut r = rhs.to_vec();
-        if norm(&r) <= goal {
-            return Krylov::Converged(0);
-        }
-        let mut z = r.clone();
-        self.solve_in_place(&mut z);
-        let mut p = z.clone();
-        let mut rz = dot(&r, &z);
-        let mut ap = vec![0.0; n];
-        for iteration in 1..=max_iterations {
-            sparse_dense_matmul(
-                MatMut::from_column_major_slice_mut(&mut ap, n, 1),
-                Accum::Replace,
-                matrix,
-                MatRef::from_column_major_slice(&p, n, 1),
-                1.0,
-                Par::Seq,
-            );
-            let curvature = dot(&p, &ap);
-            if curvature <= 0.0 || !curvature.is_finite() {
-                if iteration == 1 {
-                    x.copy_from_slice(&z);
-                }
-                return Krylov::NegativeCurvature(iteration - 1);
-            }
-            let alpha = rz / curvature;
-            for i in 0..n {
-                x[i] += alpha * p[i];
-                r[i] -= alpha * ap[i];
-            }
-            if norm(&r) <= goal {
-                return Krylov::Converged(iteration);
-            }
-            z.copy_from_slice(&r);
-            self.solve_in_place(&mut z);
-            let next = dot(&r, &z);
-            let beta = next / rz;
-            rz = next;
-            for i in 0..n {
-                p[i] = z[i] + beta * p[i];
-            }
-        }
-        Krylov::Stalled
+}
+
+/// Solves `matrix · x = rhs` to ‖rhs − matrix·x‖ ≤ `tolerance`·‖rhs‖ by conjugate gradients
+/// preconditioned with `precondition` (z ← M⁻¹ z, M symmetric positive definite: the factor of an
+/// earlier tangent, alone or with a block solved exactly), starting from x = 0. `matrix` must hold
+/// both triangles; it need not be positive definite (see [`Krylov`]).
+pub fn conjugate_gradients(
+    matrix: SparseColMatRef<'_, usize, f64>,
+    rhs: &[f64],
+    x: &mut [f64],
+    tolerance: f64,
+    max_iterations: usize,
+    precondition: &mut dyn FnMut(&mut [f64]),
+) -> Krylov {
+    let n = rhs.len();
+    x.fill(0.0);
+    let goal = tolerance * norm(rhs);
+    let mut r = rhs.to_vec();
+    if norm(&r) <= goal {
+        return Krylov::Converged(0);
     }
+    let mut z = r.clone();
+    precondition(&mut z);
+    let mut p = z.clone();
+    let mut rz = dot(&r, &z);
+    let mut ap = vec![0.0; n];
+    for iteration in 1..=max_iterations {
+        sparse_dense_matmul(
+            MatMut::from_column_major_slice_mut(&mut ap, n, 1),
+            Accum::Replace,
+            matrix,
+            MatRef::from_column_major_slice(&p, n, 1),
+            1.0,
+            Par::Seq,
+        );
+        let curvature = dot(&p, &ap);
+        if curvature <= 0.0 || !curvature.is_finite() {
+            if iteration == 1 {
+                x.copy_from_slice(&z);
+            }
+            return Krylov::NegativeCurvature(iteration - 1);
+        }
+        let alpha = rz / curvature;
+        for i in 0..n {
+            x[i] += alpha * p[i];
+            r[i] -= alpha * ap[i];
+        }
+        if norm(&r) <= goal {
+            return Krylov::Converged(iteration);
+        }
+        z.copy_from_slice(&r);
+        precondition(&mut z);
+        let next = dot(&r, &z);
+        let beta = next / rz;
+        rz = next;
+        for i in 0..n {
+            p[i] = z[i] + beta * p[i];
+        }
+    }
+    Krylov::Stalled
 }
 
 /// How a preconditioned conjugate-gradient solve ended.

@@ -22,7 +22,7 @@ use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::FemError;
-use super::factor::{Factor, Krylov, Precision, TangentFactor};
+use super::factor::{Factor, Krylov, Precision, TangentFactor, conjugate_gradients};
 use super::hyperelastic::{MooneyRivlin, TangentTerms};
 use super::linear::{DofMap, shape_gradients};
 use super::ordering::nested_dissection;
@@ -31,7 +31,7 @@ use crate::mesh::topology::Vec3;
 
 mod elimination;
 
-use elimination::Patch;
+use elimination::{Patch, PatchBlock};
 
 /// How hard the solver tries; the defaults suit the phantom's grasps.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -906,7 +906,9 @@ impl Hyperelastic {
     }
 
     /// Solves the constrained tangent system by conjugate gradients against the factor of an
-    /// earlier tangent, factorizing this one first when there is none or it has grown stale. Where
+    /// earlier tangent (with the graspers' neighbourhood, where the elimination moves the state most,
+    /// solved exactly in the preconditioner: [`PatchBlock`]), factorizing this one first when there
+    /// is none or it has grown stale. Where
     /// the tangent is not positive definite (compressed or buckling tissue far from equilibrium), CG
     /// stops at the negative curvature with a descent direction (truncated Newton), which costs far
     /// less than factorizing a shifted tangent. Without reuse, each tangent is factorized in f64 and
@@ -933,8 +935,19 @@ impl Hyperelastic {
         }
         let matrix = SparseColMatRef::new(self.pattern.as_ref(), values);
         let factor = &mut work.factor;
-        let outcome = timed(&mut work.profile.linear_solve, || {
-            factor.conjugate_gradients(matrix, rhs, &mut x, tolerance, MAX_KRYLOV_ITERATIONS)
+        // A fresh factor is the tangent's own: the patch's block would add nothing to it.
+        let block = work
+            .patch
+            .as_ref()
+            .filter(|_| !fresh)
+            .and_then(|patch| PatchBlock::new(patch, matrix));
+        let outcome = timed(&mut work.profile.linear_solve, || match &block {
+            Some(block) => conjugate_gradients(matrix, rhs, &mut x, tolerance, MAX_KRYLOV_ITERATIONS, &mut |z| {
+                block.precondition(matrix, factor.as_mut(), z)
+            }),
+            None => conjugate_gradients(matrix, rhs, &mut x, tolerance, MAX_KRYLOV_ITERATIONS, &mut |z| {
+                factor.solve_in_place(z)
+            }),
         });
         tracing::debug!(?outcome, fresh, "conjugate gradients");
         match outcome {
