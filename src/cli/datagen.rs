@@ -3,6 +3,8 @@
 use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use nak::data::dataset::{DatasetInfo, SPLIT_RULE, SolverLimits};
@@ -109,16 +111,26 @@ pub fn run(args: DatagenArgs, mesh: &TetMesh, cache: PathBuf) -> anyhow::Result<
         volumetric_law: matches!(args.regime, Regime::Nonlinear).then_some(mesh.config.volumetric_law),
         shard: args.shard,
     };
+    let rate = Arc::new(MeanRate::default());
+    let shown = Arc::clone(&rate);
     let bar = indicatif::ProgressBar::new(0).with_style(
-        indicatif::ProgressStyle::with_template("{msg} {bar:30} {pos}/{len} ({per_sec}, ETA {eta})")
-            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        indicatif::ProgressStyle::with_template("{msg} {bar:30} {pos}/{len} ({per_sec}, ETA {mean_eta})")
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+            .with_key(
+                "mean_eta",
+                move |state: &indicatif::ProgressState, w: &mut dyn std::fmt::Write| {
+                    let left = shown.time_left(state.pos() as usize, state.len().unwrap_or(0) as usize);
+                    let _ = write!(w, "{}", indicatif::HumanDuration(left));
+                },
+            ),
     );
-    let started = std::time::Instant::now();
+    let started = Instant::now();
     // Written to a file or a pipe (a long run in the background), the bar is hidden: a line per
     // percent says how far the run is instead.
     let terminal = std::io::stderr().is_terminal();
     let logged = AtomicUsize::new(usize::MAX);
     let update = |done: usize, total: usize| {
+        rate.observe(done, total);
         bar.set_length(total as u64);
         bar.set_position(done as u64);
         let percent = 100 * done / total.max(1);
@@ -127,7 +139,7 @@ pub fn run(args: DatagenArgs, mesh: &TetMesh, cache: PathBuf) -> anyhow::Result<
                 "{}: {done}/{total} ({percent} %), {} elapsed, ETA {}",
                 bar.message(),
                 indicatif::HumanDuration(started.elapsed()),
-                indicatif::HumanDuration(bar.eta())
+                indicatif::HumanDuration(rate.time_left(done, total))
             );
         }
     };
@@ -191,6 +203,36 @@ pub fn run(args: DatagenArgs, mesh: &TetMesh, cache: PathBuf) -> anyhow::Result<
     Ok(())
 }
 
+/// Time left at this run's mean rate. indicatif's own estimate follows the last few samples, and one
+/// slow grasp (a minute where most take two seconds) sends it to days; chunks resumed from an earlier
+/// run, counted done at the start, are not part of the rate.
+#[derive(Default)]
+struct MeanRate {
+    /// When this stage's first progress came, how much was done then, and the stage's total.
+    since: Mutex<Option<(Instant, usize, usize)>>,
+}
+
+impl MeanRate {
+    fn observe(&self, done: usize, total: usize) {
+        let Ok(mut since) = self.since.lock() else { return };
+        // A new stage (Green's functions, then samples) starts its own count.
+        if !matches!(*since, Some((_, first, stage)) if stage == total && done >= first) {
+            *since = Some((Instant::now(), done, total));
+        }
+    }
+
+    fn time_left(&self, done: usize, total: usize) -> Duration {
+        let Some((start, first, _)) = self.since.lock().ok().and_then(|since| *since) else {
+            return Duration::ZERO;
+        };
+        let made = done.saturating_sub(first);
+        if made == 0 {
+            return Duration::ZERO;
+        }
+        start.elapsed().mul_f64(total.saturating_sub(done) as f64 / made as f64)
+    }
+}
+
 /// The solver's effort in this run: time per sample over every sample attempted (what a dataset
 /// costs), iterations and factorizations over the converged ones (a failed solve reports none).
 fn print_nonlinear_tally(t: &NonlinearTally) {
@@ -206,7 +248,7 @@ fn print_nonlinear_tally(t: &NonlinearTally) {
     let mean = seconds.iter().sum::<f64>() / t.attempted.max(1) as f64;
     println!(
         "nonlinear: {} samples, {} failed ({:.1} %); per sample on one core {:.2} s median / {:.2} s mean / {:.2} s \
-         slowest; per converged sample: Newton iterations {:.1} mean / {} max, load steps {:.1} mean, \
+         for the slowest 1 % / {:.2} s slowest; per converged sample: Newton iterations {:.1} mean / {} max, load steps {:.1} mean, \
          factorizations {:.1} mean, conjugate-gradient iterations {:.1} mean, local Newton iterations around the \
          graspers {:.1} mean; {} with step cuts, {} with shifted tangents, {} load steps undone for jumping branches",
         t.attempted,
@@ -214,6 +256,7 @@ fn print_nonlinear_tally(t: &NonlinearTally) {
         100.0 * t.failed as f64 / t.attempted.max(1) as f64,
         median,
         mean,
+        seconds.get(seconds.len() * 99 / 100).copied().unwrap_or(0.0),
         seconds.last().copied().unwrap_or(0.0),
         per_converged(t.newton_iterations),
         t.max_newton_iterations,

@@ -222,11 +222,12 @@ fn generate(
         if is_complete {
             result.chunks_skipped += 1;
             done.fetch_add(range_of(chunk).len(), Ordering::Relaxed);
-            progress(done.load(Ordering::Relaxed), total);
         } else {
             pending.push(chunk);
         }
     }
+    // Where this run starts: what earlier runs made counts as done but not towards its rate.
+    progress(done.load(Ordering::Relaxed), total);
     // Chunks run side by side as well as their samples: a core that has finished its part of one
     // chunk starts the next instead of waiting for the chunk's slowest sample (nonlinear samples vary
     // from a second to a minute). Each chunk is written when its own samples are done.
