@@ -451,7 +451,14 @@ fn data_of_two_volumetric_laws_is_never_mixed() {
         // The solver's settings are recorded beside the law.
         assert!(info.contains("\"intermediate_tolerance\": 0.001"), "{info}");
         assert!(info.contains("\"rings\": 2"), "{info}");
+        assert!(info.contains("\"max_load_step\": 1.0"), "{info}");
     }
+    // A load step that is no fraction of the grasp is refused before anything is solved.
+    let no_step = [&new[..], &["--max-load-step", "0"]].concat();
+    refused(
+        &datagen_box(&path("no-step"), &cache, &no_step),
+        &["--max-load-step 0", "(0, 1]"],
+    );
     // Resumed with the graspers' neighbourhood solved another way, a set is refused, naming how.
     let other_solver = [&new[..], &["--elimination-rings", "0"]].concat();
     refused(

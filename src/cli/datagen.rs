@@ -56,6 +56,10 @@ pub struct DatagenArgs {
     /// Nonlinear, with elimination: the first load step, as a fraction of the grasp.
     #[arg(long, default_value_t = Elimination::default().initial_step)]
     elimination_step: f64,
+    /// Nonlinear: no load step longer than this fraction of the grasp (0.02: the quasi-static
+    /// path's own equilibrium where a grasp has several, at about four times the cost).
+    #[arg(long, default_value_t = NewtonOptions::default().max_load_step)]
+    max_load_step: f64,
     /// Make only shard I of N (0-based): the chunks c with c mod N = I, in a directory of its own
     /// (--out); `nak dataset join` assembles the N shard directories into the whole dataset.
     #[arg(long, value_name = "I/N")]
@@ -84,6 +88,15 @@ pub fn run(args: DatagenArgs, mesh: &TetMesh, cache: PathBuf) -> anyhow::Result<
         Preset::Paper => (5_000, 5_400),
         Preset::Tiny => (12, 8),
     };
+    for (flag, fraction) in [
+        ("--elimination-step", args.elimination_step),
+        ("--max-load-step", args.max_load_step),
+    ] {
+        anyhow::ensure!(
+            fraction > 0.0 && fraction <= 1.0,
+            "{flag} {fraction} is not a fraction of the grasp: give a number in (0, 1]"
+        );
+    }
     let elimination = (args.elimination_rings > 0).then_some(Elimination {
         rings: args.elimination_rings,
         initial_step: args.elimination_step,
@@ -107,6 +120,7 @@ pub fn run(args: DatagenArgs, mesh: &TetMesh, cache: PathBuf) -> anyhow::Result<
             max_step_cuts: args.max_step_cuts,
             intermediate_tolerance: args.intermediate_tolerance,
             elimination,
+            max_load_step: args.max_load_step,
         }),
         volumetric_law: matches!(args.regime, Regime::Nonlinear).then_some(mesh.config.volumetric_law),
         shard: args.shard,
@@ -160,6 +174,7 @@ pub fn run(args: DatagenArgs, mesh: &TetMesh, cache: PathBuf) -> anyhow::Result<
                 max_step_cuts: args.max_step_cuts,
                 intermediate_tolerance: args.intermediate_tolerance,
                 elimination,
+                max_load_step: args.max_load_step,
                 ..NewtonOptions::default()
             };
             let preloaded = Preloaded::load_or_compute(mesh, &cache, options)

@@ -86,6 +86,14 @@ pub struct SolverLimits {
     /// it existed, when it was not.
     #[serde(default)]
     pub elimination: Option<Elimination>,
+    /// The longest load step, as a fraction of the grasp; absent in datasets made before it could
+    /// be set: they let steps grow to the whole grasp.
+    #[serde(default = "default_max_load_step")]
+    pub max_load_step: f64,
+}
+
+fn default_max_load_step() -> f64 {
+    NewtonOptions::default().max_load_step
 }
 
 fn default_intermediate_tolerance() -> f64 {

@@ -50,6 +50,10 @@ pub struct NewtonOptions {
     pub initial_step: f64,
     /// Load-step halvings before the solve is declared failed.
     pub max_step_cuts: usize,
+    /// No load step is longer than this fraction of the load. 1 lets easy steps grow; 0.02 follows
+    /// the quasi-static path closely enough to be the reference for which of several equilibria a
+    /// grasp reaches (see [`Hyperelastic::on_path`]).
+    pub max_load_step: f64,
     /// Solve Newton corrections by conjugate gradients preconditioned with the factor of an earlier
     /// tangent of the same solve, factorizing only when that does not converge. Off: every
     /// correction factorizes its own tangent (the reference the fast path is tested against).
@@ -127,6 +131,7 @@ impl Default for NewtonOptions {
             max_iterations: 25,
             initial_step: 1.0,
             max_step_cuts: 12,
+            max_load_step: 1.0,
             reuse_factorization: true,
             elimination: Some(Elimination::default()),
         }
@@ -579,7 +584,8 @@ impl Hyperelastic {
                 }
             }
         }
-        let (mut done, mut step) = (0.0f64, initial_step.clamp(1e-6, 1.0));
+        let longest = self.options.max_load_step.clamp(1e-6, 1.0);
+        let (mut done, mut step) = (0.0f64, initial_step.clamp(1e-6, longest));
         while done < 1.0 {
             let target = (done + step).min(1.0);
             let mut trial = u.clone();
@@ -618,7 +624,7 @@ impl Hyperelastic {
                     done = reached;
                     work.stats.load_steps += 1;
                     if newton <= 4 {
-                        step = (step * 1.5).min(1.0);
+                        step = (step * 1.5).min(longest);
                     }
                 }
                 Err(failure) => {
