@@ -61,7 +61,11 @@ def main(argv: list[str] | None = None) -> int:
         help="faces meeting at more than this angle keep their edge sharp (default 40; 180 keeps none)",
     )
     mesh.add_argument("--binary", action="store_true", help="write binary MSH (default ASCII)")
-    mesh.add_argument("--displacement-min-mm", metavar="X,Y,Z", help="sampling cuboid's low corner (mm)")
+    mesh.add_argument(
+        "--displacement-min-mm",
+        metavar="X,Y,Z",
+        help="sampling cuboid's low corner, mm (write --displacement-min-mm=-90,-90,-60)",
+    )
     mesh.add_argument("--displacement-max-mm", metavar="X,Y,Z", help="sampling cuboid's high corner (mm)")
     args = parser.parse_args(argv)
     try:
