@@ -93,8 +93,8 @@ def check_selections(fixed: list[Selection], grasps: list[Selection], surface: S
     problems: list[str] = []
     if not fixed:
         problems.append(
-            "nothing is fixed: give --fixed SPEC (where the organ is attached, e.g. the liver's bare area); "
-            "an organ held by nothing would float away under the graspers"
+            f"{surface.path}: nothing is fixed: give --fixed SPEC (where the organ is attached, e.g. the liver's "
+            "bare area); an organ held by nothing would float away under the graspers"
         )
     names = [g.node_set for g in grasps]
     for name in sorted({n for n in names if names.count(n) > 1}):
@@ -120,7 +120,9 @@ def node_sets(
         if len(nodes):
             selected.setdefault(selection.node_set, []).append((selection.option, nodes))
         else:
-            problems.append(f"{selection.option} selects no boundary node of the mesh{hint}")
+            problems.append(
+                f"{selection.option} selects no boundary node of the mesh made from {surface.path.name}{hint}"
+            )
     sets = [
         NodeSet(name, np.unique(np.concatenate([n for _, n in sources])), tuple(sources))
         for name, sources in selected.items()
@@ -209,8 +211,8 @@ def _overlaps(sets: list[NodeSet], boundary: Boundary, surface: Surface) -> list
             where = surface.point(boundary.positions[np.searchsorted(boundary.nodes, node)])
             problems.append(
                 f"{_source(a, node)} and {_source(b, node)} overlap in {len(shared)} "
-                f"{'node' if len(shared) == 1 else 'nodes'}, e.g. node {node} at {where}: node sets must not share "
-                "nodes"
+                f"{'node' if len(shared) == 1 else 'nodes'} of the mesh made from {surface.path.name}, e.g. node "
+                f"{node} at {where}: node sets must not share nodes"
             )
     return problems
 

@@ -451,7 +451,7 @@ def test_selections_are_refused_before_meshing(
 ) -> None:
     stl, obj = surfaces / "ellipsoid.stl", surfaces / "two-lobes.obj"
     [line] = refusal(mesh_command(stl, tmp_path), capsys)
-    assert line.startswith("error: nothing is fixed: give --fixed SPEC")
+    assert line.startswith(f"error: {stl}: nothing is fixed: give --fixed SPEC")
     [line] = refusal(mesh_command(obj, tmp_path, "--fixed", "group:liver"), capsys)
     assert line == "error: --fixed group:liver: two-lobes.obj has no group 'liver'; its groups: bare, skin, tip"
     [line] = refusal(mesh_command(stl, tmp_path, "--fixed", "vertices:1,99999"), capsys)
@@ -472,11 +472,15 @@ def test_empty_and_overlapping_selections_are_refused_together(
     options += ["--grasp", "c=sphere:-70,0,0,15"]
     lines = refusal(mesh_command(surfaces / "ellipsoid.stl", tmp_path, *options), capsys)
     assert len(lines) == 3, lines
-    assert lines[0].startswith("error: --fixed sphere:0,0,500,10 selects no boundary node of the mesh; the nearest")
+    assert lines[0].startswith(
+        "error: --fixed sphere:0,0,500,10 selects no boundary node of the mesh made from ellipsoid.stl; the nearest"
+    )
     assert "mm from its centre" in lines[0]
     assert lines[1].startswith(f"error: --fixed {ELLIPSOID_FIXED} and --grasp c=sphere:-70,0,0,15 overlap in ")
     assert lines[2].startswith("error: --grasp a=sphere:80,0,0,20 and --grasp b=box:60,-60,-60,100,60,60 overlap in ")
-    assert all(", e.g. node " in line and " mm: node sets must not share nodes" in line for line in lines[1:])
+    for line in lines[1:]:
+        assert " of the mesh made from ellipsoid.stl, e.g. node " in line
+        assert " mm: node sets must not share nodes" in line
 
 
 # --- The geometry underneath ----------------------------------------------------------------------------
