@@ -1,14 +1,15 @@
 """`python -m nak_organ mesh SURFACE --units mm --out DIR --fixed SPEC [--grasp NAME=SPEC]…`
 
 Reads a closed triangle surface, refuses it with one line per problem when it cannot enclose an organ,
-tetrahedralizes it with gmsh to about --target-nodes nodes, selects the node sets, and writes DIR/organ.msh
-and DIR/model.toml, which `nak mesh info DIR` and `nak serve --mesh DIR` take. docs/your-own-organ.md
-describes the options; exit status 2 means the input was refused.
+tetrahedralizes it with gmsh to about --target-nodes nodes, selects the node sets, writes organ.msh and
+model.toml, and places them in DIR once `nak mesh info` accepts them (placing.py); `nak serve --mesh DIR`
+then takes DIR. docs/your-own-organ.md describes the options; exit status 2 means the input was refused.
 """
 
 from __future__ import annotations
 
 import argparse
+import shutil
 import sys
 from pathlib import Path
 
@@ -21,12 +22,11 @@ from .geometry import enclosed_volume
 from .meshing import VolumeMesh, tetrahedralize
 from .model_toml import model_toml
 from .msh import write_msh
+from .placing import MSH_NAME, default_nak, place, staging_folder
 from .quality import radius_ratios, tet_volumes
 from .reading import METRES_PER_UNIT, read_surface
 from .regions import split_free_surface
 from .selections import NodeSet, check_selections, node_sets, parse_fixed, parse_grasp
-
-MSH_NAME = "organ.msh"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -61,6 +61,13 @@ def main(argv: list[str] | None = None) -> int:
         help="faces meeting at more than this angle keep their edge sharp (default 40; 180 keeps none)",
     )
     mesh.add_argument("--binary", action="store_true", help="write binary MSH (default ASCII)")
+    mesh.add_argument(
+        "--nak",
+        type=Path,
+        default=default_nak(),
+        help="the nak binary whose `nak mesh info` checks the files before they are placed in --out "
+        "(default: $NAK_BIN, else the repository's target/release/nak; without one they are placed unchecked)",
+    )
     mesh.add_argument(
         "--displacement-min-mm",
         metavar="X,Y,Z",
@@ -98,8 +105,6 @@ def run_mesh(args: argparse.Namespace) -> None:
     if not grasp_sets:
         grasp_sets = split_free_surface(boundary, fixed_set, regions)
 
-    args.out.mkdir(parents=True, exist_ok=True)
-    write_msh(args.out / MSH_NAME, mesh, [fixed_set, *grasp_sets], args.binary)
     text = model_toml(
         name=args.name or args.surface.stem,
         source=args.surface,
@@ -108,10 +113,16 @@ def run_mesh(args: argparse.Namespace) -> None:
         grasp_regions=[g.name for g in grasp_sets],
         displacement_mm=displacement,
     )
-    (args.out / "model.toml").write_text(text)
-    print(
-        summary(args.out, mesh, boundary, abs(enclosed_volume(surface.vertices, surface.faces)), fixed_set, grasp_sets)
-    )
+    staging = staging_folder(args.out)
+    try:
+        write_msh(staging / MSH_NAME, mesh, [fixed_set, *grasp_sets], args.binary)
+        (staging / "model.toml").write_text(text)
+        checked = place(staging, args.out, args.nak)
+    finally:
+        # Left behind only when writing failed: placed and refused files have moved out of it.
+        shutil.rmtree(staging, ignore_errors=True)
+    volume = abs(enclosed_volume(surface.vertices, surface.faces))
+    print(summary(args.out, mesh, boundary, volume, fixed_set, grasp_sets, checked))
 
 
 def _displacement_option(low: str | None, high: str | None) -> tuple[tuple[float, ...], tuple[float, ...]] | None:
@@ -132,7 +143,13 @@ def _displacement_option(low: str | None, high: str | None) -> tuple[tuple[float
 
 
 def summary(
-    out: Path, mesh: VolumeMesh, boundary: Boundary, input_volume: float, fixed: NodeSet, grasps: list[NodeSet]
+    out: Path,
+    mesh: VolumeMesh,
+    boundary: Boundary,
+    input_volume: float,
+    fixed: NodeSet,
+    grasps: list[NodeSet],
+    checked: str,
 ) -> str:
     """What was written, for the terminal."""
     quality = radius_ratios(mesh.nodes, mesh.tets)
@@ -146,6 +163,7 @@ def summary(
         f"quality     radius ratio 3r/R min {quality.min():.3f}, median {np.median(quality):.3f} (1 = regular)",
         f"deviation   surface nodes from the input surface: max {boundary.node_deviation * 1000:.3f} mm; "
         f"input vertices from the mesh surface: max {boundary.input_deviation * 1000:.3f} mm",
+        f"checked     {checked}",
         "node sets",
     ]
     for node_set in [fixed, *grasps]:

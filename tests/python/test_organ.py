@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import os
+import shutil
 import struct
 import subprocess
 import sys
@@ -24,9 +25,14 @@ from numpy.typing import NDArray
 
 from conftest import ROOT
 from nak_organ.cli import main
+from nak_organ.errors import OrganInputError
 from nak_organ.graphs import connected_components, vertex_neighbours
 from nak_organ.intersections import intersecting_pairs
+from nak_organ.meshing import VolumeMesh, boundary_triangles
 from nak_organ.model_toml import PHANTOM_DIAGONAL_M
+from nak_organ.msh import write_msh
+from nak_organ.placing import REFUSED, nak_reason, place, staging_folder
+from nak_organ.selections import NodeSet
 
 Floats = NDArray[np.float64]
 Ints = NDArray[np.int64]
@@ -357,6 +363,23 @@ def test_displacements_can_be_given(surfaces: Path, tmp_path: Path) -> None:
     assert sum(r["weight"] for r in sampling["grasp_regions"]) == pytest.approx(1.0, abs=1e-12)
 
 
+def test_files_are_placed_once_nak_accepts_them(
+    nak: Path, surfaces: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "checked"
+    (out / REFUSED).mkdir(parents=True)  # left by an earlier refused run: gone once a mesh is accepted
+    options = ["--fixed", ELLIPSOID_FIXED, "--target-nodes", "500", "--grasp-regions", "2", "--nak", str(nak)]
+    assert main(mesh_command(surfaces / "ellipsoid.stl", out, *options)) == 0
+    assert f"checked     nak mesh info accepts the mesh and its configuration ({nak})" in capsys.readouterr().out
+    assert sorted(p.name for p in out.iterdir()) == ["model.toml", "organ.msh"]
+    # Without a nak binary the files are placed, and the summary says they are unchecked.
+    missing = tmp_path / "no-such-nak"
+    options = [*options[:-1], str(missing)]
+    assert main(mesh_command(surfaces / "ellipsoid.stl", tmp_path / "unchecked", *options)) == 0
+    assert f"checked     not by nak mesh info: no nak binary at {missing}" in capsys.readouterr().out
+    assert sorted(p.name for p in (tmp_path / "unchecked").iterdir()) == ["model.toml", "organ.msh"]
+
+
 # --- Refusals -------------------------------------------------------------------------------------------
 
 
@@ -481,6 +504,41 @@ def test_empty_and_overlapping_selections_are_refused_together(
     for line in lines[1:]:
         assert " of the mesh made from ellipsoid.stl, e.g. node " in line
         assert " mm: node sets must not share nodes" in line
+
+
+def test_a_mesh_nak_refuses_is_not_placed(nak: Path, ellipsoid_out: Path, tmp_path: Path) -> None:
+    """nak's loader has the last word: the ellipsoid's mesh with one tetrahedron turned inside out (which
+    gmsh does not make, hence written here) stays out of DIR, and nak's reason is the refusal."""
+    written = read_written(ellipsoid_out)
+    tets = written.tets.copy()
+    tets[7, [0, 1]] = tets[7, [1, 0]]
+    out = tmp_path / "organ"
+    out.mkdir()
+    (out / "organ.msh").write_text("an earlier mesh")
+    staging = staging_folder(out)
+    mesh = VolumeMesh(written.points, tets, boundary_triangles(tets), 0.0, ())
+    write_msh(staging / "organ.msh", mesh, [NodeSet(n, v, ()) for n, v in written.node_sets.items()], False)
+    shutil.copy(ellipsoid_out / "model.toml", staging / "model.toml")
+    with pytest.raises(OrganInputError) as refused:
+        place(staging, out, nak)
+    [line] = refused.value.problems
+    kept = out / REFUSED
+    assert line.startswith(
+        f"nak mesh info refuses the written mesh ({out} is unchanged; see {kept}): {kept / 'organ.msh'}: "
+        "1 inverted tetrahedra (volume < 0), e.g. element "
+    ), line
+    assert (out / "organ.msh").read_text() == "an earlier mesh"
+    assert sorted(p.name for p in out.iterdir()) == ["organ.msh", REFUSED]
+    assert sorted(p.name for p in kept.iterdir()) == ["model.toml", "organ.msh"]
+
+
+def test_nak_reason_is_the_innermost_cause() -> None:
+    report = "Error: cannot load mesh d\n\nCaused by:\n    0: reading d\n    1: d/organ.msh: node 3: bad\n\n"
+    assert nak_reason(report + "Stack backtrace:\n   0: main\n") == "d/organ.msh: node 3: bad"
+    assert nak_reason("Error: cannot load mesh d\n\nCaused by:\n    d/model.toml: no [mesh]\n") == (
+        "d/model.toml: no [mesh]"
+    )
+    assert nak_reason("Error: no such command\n") == "no such command"
 
 
 # --- The geometry underneath ----------------------------------------------------------------------------
