@@ -69,7 +69,7 @@ def _size_problems(surface: Surface) -> list[str]:
     in_file_units = diagonal / METRES_PER_UNIT[surface.units]
     fits = [u for u, scale in METRES_PER_UNIT.items() if low <= in_file_units * scale <= high]
     advice = (
-        f"the coordinates look like {'or '.join(fits)}: pass --units {fits[0]} "
+        f"the coordinates look like {' or '.join(fits)}: pass --units {fits[0]} "
         f"(which makes it {_length(in_file_units * METRES_PER_UNIT[fits[0]])})"
         if fits
         else "no unit (mm, cm, m) gives an organ's size: check the file's scale"

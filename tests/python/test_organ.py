@@ -467,6 +467,10 @@ def test_units_that_contradict_the_size_are_refused_both_ways(
     [line] = refusal(mesh_command(in_metres, tmp_path, *fixed), capsys)
     assert "with --units mm the surface is 0.224 mm across (bounding-box diagonal), too small for an organ" in line
     assert "pass --units m (which makes it 22.4 cm)" in line
+    # 22.4 units across: as mm or as cm an organ, as m not.
+    in_cm = write_stl_binary(tmp_path / "either.stl", vertices / 10.0, faces)
+    [line] = refusal([*mesh_command(in_cm, tmp_path, *fixed), "--units", "m"], capsys)
+    assert line.endswith("the coordinates look like mm or cm: pass --units mm (which makes it 2.24 cm)"), line
 
 
 def test_selections_are_refused_before_meshing(
