@@ -93,6 +93,9 @@ def run_mesh(args: argparse.Namespace) -> None:
     regions = 10 if args.grasp_regions is None else args.grasp_regions
     if regions < 1 or args.target_nodes < 100:
         raise OrganInputError(["--grasp-regions must be at least 1 and --target-nodes at least 100"])
+    if args.out.exists() and not args.out.is_dir():
+        # Before meshing, which may take a while; other reasons not to write there surface when it is made.
+        raise OrganInputError([f"--out {args.out}: cannot write there: it is a file, not a directory"])
     fixed = [parse_fixed(s) for s in args.fixed]
     grasps = [parse_grasp(s) for s in args.grasp]
     surface = read_surface(args.surface, args.units)

@@ -32,8 +32,11 @@ def default_nak() -> Path:
 
 def staging_folder(out: Path) -> Path:
     """An empty folder inside `out` (created) for the files before they are checked."""
-    out.mkdir(parents=True, exist_ok=True)
-    return Path(tempfile.mkdtemp(prefix=".staging-", dir=out))
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        return Path(tempfile.mkdtemp(prefix=".staging-", dir=out))
+    except OSError as e:
+        raise OrganInputError([f"--out {out}: cannot write there: {e.strerror}"]) from None
 
 
 def place(staging: Path, out: Path, nak: Path) -> str:

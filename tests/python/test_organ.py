@@ -399,6 +399,19 @@ def test_the_command_line_exits_2_without_a_traceback(tmp_path: Path) -> None:
     assert result.stderr.startswith("error: ") and "Traceback" not in result.stderr
 
 
+def test_an_out_that_cannot_be_written_is_refused(
+    surfaces: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    a_file = tmp_path / "a-file"
+    a_file.write_text("")
+    options = ["--fixed", ELLIPSOID_FIXED, "--target-nodes", "300", "--grasp-regions", "1"]
+    [line] = refusal(mesh_command(surfaces / "ellipsoid.stl", a_file, *options), capsys)
+    assert line == f"error: --out {a_file}: cannot write there: it is a file, not a directory"
+    # Inside a file: found when the folder is made, after meshing.
+    [line] = refusal(mesh_command(surfaces / "ellipsoid.stl", a_file / "organ", *options), capsys)
+    assert line == f"error: --out {a_file / 'organ'}: cannot write there: Not a directory"
+
+
 def test_non_manifold_surfaces_are_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     vertices, faces = ellipsoid(3)
     # A face used twice: its edges have three faces each.
