@@ -15,6 +15,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "examples"))
 sys.path.insert(0, str(ROOT / "models" / "phantom-liver"))
+sys.path.insert(0, str(ROOT / "organ"))
 sys.path.insert(0, str(ROOT / "training"))
 
 

@@ -35,7 +35,7 @@ FOREIGN_FLAGS = {
     "--save-baseline": "criterion (cargo bench)",
 }
 # Pages about another tool: their bare flags are that tool's (their `nak …` command lines are checked).
-OTHER_TOOL_PAGES = {"training/README.md": "scripts/nak-train"}
+OTHER_TOOL_PAGES = {"training/README.md": "scripts/nak-train", "docs/your-own-organ.md": "scripts/nak-organ"}
 
 FENCE = re.compile(r"^\s*(```|~~~)")
 # A code span: a run of backticks, its content (not across a blank line), the same run again.
