@@ -59,6 +59,19 @@ enum Command {
         #[command(subcommand)]
         command: MeshCommand,
     },
+    /// Your own organ, from a segmented surface to a served model.
+    Organ {
+        #[command(subcommand)]
+        command: OrganCommand,
+    },
+}
+
+#[derive(Subcommand)]
+enum OrganCommand {
+    /// From a closed surface (STL, OBJ, PLY): a labelled volume mesh and model.toml, then the Green's
+    /// functions of green-linear and green-tangent, so that `nak serve --mesh DIR` serves it at once.
+    /// Run again, it redoes only what changed.
+    New(cli::organ::OrganNewArgs),
 }
 
 #[derive(Subcommand)]
@@ -124,6 +137,9 @@ fn main() -> anyhow::Result<()> {
             let engine = models.engine(mesh, &eval.model)?;
             cli::eval::run(&eval, &engine)
         }
+        Command::Organ {
+            command: OrganCommand::New(args),
+        } => cli::organ::run(&args),
         Command::Mesh {
             command: MeshCommand::Info { path },
         } => {

@@ -81,7 +81,8 @@ pub fn build_engine(config: &ServeConfig) -> anyhow::Result<Engine> {
         if let Some(green) = made.borrow().get(&stiffness) {
             return Ok(green.clone());
         }
-        let green = Arc::new(load_green(&mesh, stiffness, config)?);
+        let cache = config.cache_dir.clone().unwrap_or_else(default_cache_dir);
+        let green = Arc::new(load_green(&mesh, stiffness, &cache)?);
         made.borrow_mut().insert(stiffness, green.clone());
         Ok(green)
     };
@@ -144,14 +145,13 @@ fn load_shipped_models(engine: &mut Engine, mesh: &TetMesh, context: LoadContext
 }
 
 /// Loads the Green's functions of `stiffness` from the cache, computing them with a progress bar first.
-fn load_green(mesh: &TetMesh, stiffness: Stiffness, config: &ServeConfig) -> anyhow::Result<GreenFunctions> {
-    let cache = config.cache_dir.clone().unwrap_or_else(default_cache_dir);
+pub fn load_green(mesh: &TetMesh, stiffness: Stiffness, cache: &Path) -> anyhow::Result<GreenFunctions> {
     let bar = indicatif::ProgressBar::new(0).with_style(
         indicatif::ProgressStyle::with_template("Green's functions {bar:30} {pos}/{len} columns, ETA {eta}")
             .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
     );
     let name = stiffness.model_name();
-    let green = GreenFunctions::load_or_compute(mesh, stiffness, &cache, |done, total| {
+    let green = GreenFunctions::load_or_compute(mesh, stiffness, cache, |done, total| {
         bar.set_length(total as u64);
         bar.set_position(done as u64);
     })

@@ -7,6 +7,7 @@ pub mod eval;
 pub mod fields;
 pub mod mesh_info;
 pub mod mesh_refine;
+pub mod organ;
 pub mod predict;
 pub mod replay;
 pub mod serve;

@@ -77,6 +77,12 @@ impl Stiffness {
         }
     }
 
+    /// Whether these Green's functions of `mesh` are in `cache_dir` already: loading them is then a
+    /// mapping of the file, not a solve per column.
+    pub fn cached(self, mesh: &TetMesh, cache_dir: &Path) -> bool {
+        self.cache_file(mesh, &self.key(mesh), cache_dir).exists()
+    }
+
     /// The cache file of these Green's functions, named by the mesh and `key` (see [`Stiffness::key`]).
     fn cache_file(self, mesh: &TetMesh, key: &str, cache_dir: &Path) -> PathBuf {
         let prefix = match self {

@@ -1,0 +1,195 @@
+//! `nak organ new`: a surface written by the test, meshed and labelled, its Green's functions cached,
+//! and served at once: green-linear over gRPC equals the linear finite-element solve on the made mesh.
+//! The meshing stage runs the `nak_organ` package with the project's `.venv` (scripts/setup-python).
+
+mod common;
+
+use std::f64::consts::PI;
+use std::path::{Path, PathBuf};
+use std::process::Output;
+
+use common::process::{ServeProcess, nak};
+use nak::fem::solve_dirichlet;
+use nak::mesh::{self, MeshSource};
+use nak::proto::v1::deformation_client::DeformationClient;
+use nak::proto::v1::{Grasp, ListModelsRequest, PredictRequest, Vec3};
+
+fn repo() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+/// An ellipsoid of semi-axes 40, 30 and 25 mm as an ASCII STL: a latitude–longitude net, closed at
+/// its poles, its triangles facing out. `leave_out` drops one triangle (an open surface).
+fn ellipsoid_stl(path: &Path, leave_out: Option<usize>) {
+    let (rings, segments) = (12, 24);
+    let point = |i: usize, j: usize| -> [f64; 3] {
+        let (theta, phi) = (
+            PI * i as f64 / rings as f64,
+            2.0 * PI * (j % segments) as f64 / segments as f64,
+        );
+        let (s, z) = match i {
+            0 => (0.0, 25.0),
+            i if i == rings => (0.0, -25.0),
+            _ => (theta.sin(), 25.0 * theta.cos()),
+        };
+        [40.0 * s * phi.cos(), 30.0 * s * phi.sin(), z]
+    };
+    let mut triangles = Vec::new();
+    for i in 0..rings {
+        for j in 0..segments {
+            let (a, b, c, d) = (point(i, j), point(i + 1, j), point(i + 1, j + 1), point(i, j + 1));
+            if i + 1 < rings {
+                triangles.push([a, b, c]);
+            }
+            if i > 0 {
+                triangles.push([a, c, d]);
+            }
+        }
+    }
+    // Written to the micrometre, with no negative zeros, so that shared corners read as one vertex.
+    let number = |v: f64| format!("{:.6}", (v * 1e6).round() / 1e6 + 0.0);
+    let mut stl = String::from("solid ellipsoid\n");
+    for (k, t) in triangles.iter().enumerate() {
+        if Some(k) == leave_out {
+            continue;
+        }
+        stl.push_str("  facet normal 0 0 0\n    outer loop\n");
+        for p in t {
+            stl.push_str(&format!(
+                "      vertex {} {} {}\n",
+                number(p[0]),
+                number(p[1]),
+                number(p[2])
+            ));
+        }
+        stl.push_str("    endloop\n  endfacet\n");
+    }
+    stl.push_str("endsolid ellipsoid\n");
+    std::fs::write(path, stl).unwrap();
+}
+
+fn organ_new(surface: &Path, out: &Path, cache: &Path) -> Output {
+    nak()
+        .current_dir(repo())
+        .args(["organ", "new"])
+        .arg(surface)
+        .args(["--units", "mm", "--fixed", "sphere:0,0,-25,12", "--grasp-regions", "3"])
+        .args(["--target-nodes", "500", "--out"])
+        .arg(out)
+        .arg("--cache-dir")
+        .arg(cache)
+        .output()
+        .unwrap()
+}
+
+fn text(bytes: &[u8]) -> String {
+    String::from_utf8_lossy(bytes).into_owned()
+}
+
+#[test]
+fn a_surface_becomes_a_served_organ_whose_green_linear_is_the_linear_fem_solve() {
+    let dir = tempfile::tempdir().unwrap();
+    let (surface, out, cache) = (
+        dir.path().join("ellipsoid.stl"),
+        dir.path().join("organ"),
+        dir.path().join("cache"),
+    );
+    ellipsoid_stl(&surface, None);
+    let made = organ_new(&surface, &out, &cache);
+    let said = text(&made.stdout);
+    assert!(made.status.success(), "{said}\n{}", text(&made.stderr));
+    for stage in [
+        "[1/3] mesh: made",
+        "[2/3] green-linear",
+        "[3/3] green-tangent",
+        "is ready",
+    ] {
+        assert!(said.contains(stage), "{stage}: {said}");
+    }
+    // Run again, nothing changed: the mesh is not made again and the caches are read.
+    let again = organ_new(&surface, &out, &cache);
+    let said = text(&again.stdout);
+    assert!(
+        again.status.success() && said.contains("up to date, not made again"),
+        "{said}"
+    );
+    assert_eq!(said.matches("already cached").count(), 2, "{said}");
+
+    let mut serve = nak();
+    serve
+        .args(["serve", "--green-linear", "--green-tangent", "--mesh"])
+        .arg(&out)
+        .arg("--cache-dir")
+        .arg(&cache);
+    let server = ServeProcess::start(serve);
+    let address = server.address.clone();
+    let organ = mesh::load(&MeshSource::Directory(out.clone())).unwrap();
+    let held = organ.node_sets["grasp_01"][0];
+    let pull = [0.0, 0.004, 0.002];
+    let runtime = tokio::runtime::Runtime::new().unwrap();
+    let (models, field) = runtime.block_on(async {
+        let mut client = DeformationClient::connect(format!("http://{address}")).await.unwrap();
+        let models = client
+            .list_models(ListModelsRequest {})
+            .await
+            .unwrap()
+            .into_inner()
+            .models;
+        let answer = client
+            .predict(PredictRequest {
+                model: "green-linear".into(),
+                grasps: vec![Grasp {
+                    nodes: vec![held],
+                    displacement: Some(Vec3 {
+                        x: pull[0] as f32,
+                        y: pull[1] as f32,
+                        z: pull[2] as f32,
+                    }),
+                    ..Default::default()
+                }],
+                ..Default::default()
+            })
+            .await
+            .unwrap()
+            .into_inner();
+        let field: Vec<f64> = answer
+            .displacements
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]) as f64)
+            .collect();
+        (models, field)
+    });
+    let names: Vec<&str> = models.iter().map(|m| m.name.as_str()).collect();
+    for model in ["kelvinlet", "green-linear", "green-tangent"] {
+        assert!(names.contains(&model), "{model} not served: {names:?}");
+    }
+    let direct = solve_dirichlet(&organ, &[(held, pull)]).unwrap();
+    let (mut difference, mut norm) = (0.0, 0.0);
+    for (served, exact) in field.chunks(3).zip(&direct) {
+        for k in 0..3 {
+            difference += (served[k] - exact[k]).powi(2);
+            norm += exact[k].powi(2);
+        }
+    }
+    // The field travels in f32, and the cached Green's functions are f32.
+    let relative = (difference / norm).sqrt();
+    assert!(
+        relative < 1e-5,
+        "green-linear differs from the direct solve by {relative:e}"
+    );
+    let (exit, log) = server.stop();
+    assert!(exit.success(), "{log:?}");
+}
+
+#[test]
+fn an_open_surface_is_refused_naming_the_file_and_nothing_is_made() {
+    let dir = tempfile::tempdir().unwrap();
+    let (surface, out) = (dir.path().join("holed.stl"), dir.path().join("organ"));
+    ellipsoid_stl(&surface, Some(100));
+    let refused = organ_new(&surface, &out, &dir.path().join("cache"));
+    let said = text(&refused.stderr);
+    assert!(!refused.status.success(), "{said}");
+    assert!(said.contains("holed.stl") && said.contains("open"), "{said}");
+    assert!(said.contains("the meshing stage did not make"), "{said}");
+    assert!(!out.join("organ.msh").exists());
+}
