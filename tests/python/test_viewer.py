@@ -10,6 +10,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import shlex
 import statistics
 import struct
 import time
@@ -32,7 +33,9 @@ MOVE_INTERVAL_S = 1 / 120  # a gaming mouse's report rate; an office mouse sends
 
 @pytest.fixture(scope="module")
 def viewer(nak_binary: Path) -> Iterator[str]:
-    with start_server_ports(nak_binary, ["--ui", "127.0.0.1:0"], ["viewer listening"]) as addresses:
+    # NAK_VIEWER_SERVE_ARGS: more `nak serve` arguments (another mesh, say: scripts/viewer-screenshot).
+    extra = shlex.split(os.environ.get("NAK_VIEWER_SERVE_ARGS", ""))
+    with start_server_ports(nak_binary, ["--ui", "127.0.0.1:0", *extra], ["viewer listening"]) as addresses:
         yield f"http://{addresses['viewer listening']}"
 
 

@@ -58,10 +58,12 @@ async function start() {
     option.textContent = [model.name, model.kind, model.regime, score].filter(Boolean).join(" · ");
     picker.append(option);
   }
-  // The most accurate model on held-out data first; the Kelvinlet prior when none has a score.
+  // The most accurate model on held-out data first; when none has a score (a new organ, served with
+  // its Green's functions but no network yet), an exact model before the Kelvinlet prior.
   const scored = models.filter((m) => Number.isFinite(testDcm(m)));
   const best = scored.sort((a, b) => testDcm(b) - testDcm(a))[0];
-  state.model = best?.name ?? models.find((m) => m.name === "kelvinlet")?.name ?? models[0]?.name ?? "";
+  const fallback = models.find((m) => m.kind === "exact") ?? models.find((m) => m.name === "kelvinlet");
+  state.model = best?.name ?? fallback?.name ?? models[0]?.name ?? "";
   picker.value = state.model;
   picker.addEventListener("change", () => {
     state.model = picker.value;
