@@ -77,11 +77,11 @@ pub fn build_engine(config: &ServeConfig) -> anyhow::Result<Engine> {
     // Green's functions are made (or read from the cache) once per stiffness, when the first model
     // needs them: a network trained on that prior, or green-linear or green-tangent itself.
     let made: RefCell<HashMap<Stiffness, Arc<GreenFunctions>>> = RefCell::new(HashMap::new());
+    let cache = config.cache_dir.clone().unwrap_or_else(default_cache_dir);
     let green = |stiffness: Stiffness| -> anyhow::Result<Arc<GreenFunctions>> {
         if let Some(green) = made.borrow().get(&stiffness) {
             return Ok(green.clone());
         }
-        let cache = config.cache_dir.clone().unwrap_or_else(default_cache_dir);
         let green = Arc::new(load_green(&mesh, stiffness, &cache)?);
         made.borrow_mut().insert(stiffness, green.clone());
         Ok(green)
