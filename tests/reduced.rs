@@ -79,7 +79,13 @@ fn any_number_of_points_up_to_the_limit_runs_and_more_are_refused() {
     let request = |k: usize| Request {
         model: "reduced-residual".into(),
         grasps: vec![Grasp {
-            nodes: mesh.surface_nodes.iter().take(k).copied().collect(),
+            nodes: mesh
+                .surface_nodes
+                .iter()
+                .copied()
+                .filter(|&n| !mesh.is_fixed(n))
+                .take(k)
+                .collect(),
             displacement: [0.0, 0.01, 0.0],
             ..Default::default()
         }],

@@ -205,6 +205,7 @@ async fn a_point_grasp_snaps_to_the_surface() {
     let within = m
         .surface_nodes
         .iter()
+        .filter(|&&s| !m.is_fixed(s))
         .filter(|&&s| {
             let q = m.positions[s as usize];
             (0..3).map(|k| (q[k] - outside[k] as f64).powi(2)).sum::<f64>() <= (radius as f64).powi(2)
@@ -347,8 +348,9 @@ async fn bad_requests_are_refused_with_the_right_code_and_a_clear_message() {
     )
     .await;
     let m = server.engine.mesh().clone();
-    let surface = m.surface_nodes[0];
+    let surface = m.surface_nodes.iter().copied().find(|&n| !m.is_fixed(n)).unwrap();
     let inside = (0..m.node_count() as u32).find(|&n| !m.is_surface[n as usize]).unwrap();
+    let fixed = m.node_sets["fixed"][0];
     let ok = |u: [f32; 3]| node_grasp(&[surface], u);
 
     let unknown_model = PredictRequest {
@@ -379,6 +381,13 @@ async fn bad_requests_are_refused_with_the_right_code_and_a_clear_message() {
     .await;
     refused(
         &server,
+        request(vec![node_grasp(&[fixed], [0.0, 0.01, 0.0])]),
+        Code::InvalidArgument,
+        &format!("node {fixed}, which is in the mesh's `fixed` set"),
+    )
+    .await;
+    refused(
+        &server,
         request(vec![ok([f32::NAN, 0.0, 0.0])]),
         Code::InvalidArgument,
         "not finite",
@@ -404,7 +413,13 @@ async fn bad_requests_are_refused_with_the_right_code_and_a_clear_message() {
         "above the server's bound of 200.0 mm",
     )
     .await;
-    let many: Vec<u32> = m.surface_nodes.iter().take(257).copied().collect();
+    let many: Vec<u32> = m
+        .surface_nodes
+        .iter()
+        .copied()
+        .filter(|&n| !m.is_fixed(n))
+        .take(257)
+        .collect();
     refused(
         &server,
         request(vec![node_grasp(&many, [0.0, 0.01, 0.0])]),
@@ -438,7 +453,7 @@ async fn bad_requests_are_refused_with_the_right_code_and_a_clear_message() {
 async fn malformed_grasps_and_node_selections_are_refused_naming_the_field() {
     let server = TestServer::start(Limits::default(), 64 << 10).await;
     let m = server.engine.mesh().clone();
-    let surface = m.surface_nodes[0];
+    let surface = m.surface_nodes.iter().copied().find(|&n| !m.is_fixed(n)).unwrap();
     let u = vec3([0.0, 0.01, 0.0]);
     let malformed = [
         (
@@ -473,7 +488,7 @@ async fn malformed_grasps_and_node_selections_are_refused_naming_the_field() {
                 displacement: u,
                 ..Default::default()
             },
-            "no surface node lies within 5.0 mm",
+            "no free surface node lies within 5.0 mm",
         ),
     ];
     for (grasp, mentions) in malformed {
@@ -587,7 +602,13 @@ fn the_engine_calls_small_prior_requests_quick() {
     let grasping = |points: usize, selection: Selection| {
         let request = Request {
             grasps: vec![nak::engine::Grasp {
-                nodes: mesh.surface_nodes[..points].to_vec(),
+                nodes: mesh
+                    .surface_nodes
+                    .iter()
+                    .copied()
+                    .filter(|&n| !mesh.is_fixed(n))
+                    .take(points)
+                    .collect(),
                 displacement: [0.0, 0.01, 0.0],
                 ..Default::default()
             }],
@@ -612,7 +633,13 @@ fn the_engine_calls_small_prior_requests_quick() {
     );
     let request = Request {
         grasps: vec![nak::engine::Grasp {
-            nodes: vec![mesh.surface_nodes[0]],
+            nodes: mesh
+                .surface_nodes
+                .iter()
+                .copied()
+                .filter(|&n| !mesh.is_fixed(n))
+                .take(1)
+                .collect(),
             ..Default::default()
         }],
         ..Default::default()

@@ -27,6 +27,8 @@ pub struct RegionSampler {
 pub struct GraspSampler {
     positions: Vec<[f64; 3]>,
     surface_nodes: Vec<u32>,
+    /// Sorted: held by the fixture, so no grasper holds them too.
+    fixed: Vec<u32>,
     regions: Vec<RegionSampler>,
     displacement_min: [f64; 3],
     displacement_max: [f64; 3],
@@ -79,9 +81,12 @@ impl GraspSampler {
         if regions.iter().map(|r| r.weight).sum::<f64>() <= 0.0 {
             return Err(SamplingError::NoWeight);
         }
+        let mut fixed = node_set("fixed").unwrap_or_default();
+        fixed.sort_unstable();
         Ok(Self {
             positions: positions.to_vec(),
             surface_nodes: surface_nodes.to_vec(),
+            fixed,
             regions,
             displacement_min: sampling.displacement_min,
             displacement_max: sampling.displacement_max,
@@ -130,10 +135,12 @@ impl GraspSampler {
         let centre = region.nodes[pick(rng, weights)];
         let extra = rng.random_range(self.neighbours.0..=self.neighbours.1);
         let c = self.positions[centre as usize];
+        // A grasp next to the fixed surface holds free nodes only: a fixed node cannot be moved (and
+        // its zero column would make the exact models' G[S,S] singular).
         let mut by_distance: Vec<(f64, u32)> = self
             .surface_nodes
             .iter()
-            .filter(|&&n| n != centre && !held.contains(&n))
+            .filter(|&&n| n != centre && !held.contains(&n) && self.fixed.binary_search(&n).is_err())
             .map(|&n| {
                 let p = self.positions[n as usize];
                 ((0..3).map(|k| (p[k] - c[k]).powi(2)).sum(), n)

@@ -92,10 +92,17 @@ fn check_node(mesh: &TetMesh, g: usize, node: u32) -> Result<(), EngineError> {
              (GetMesh lists them)"
         )));
     }
+    if mesh.is_fixed(node) {
+        return Err(EngineError::invalid(format!(
+            "grasps[{g}] holds node {node}, which is in the mesh's `fixed` set: the fixture holds it in \
+             place, so no grasper can move it"
+        )));
+    }
     Ok(())
 }
 
-/// Surface nodes within `radius` of `point`, or the nearest one when `radius` is 0.
+/// Free surface nodes within `radius` of `point`, or the nearest one when `radius` is 0; fixed nodes
+/// are skipped (the fixture holds them).
 fn snap(
     mesh: &TetMesh,
     limits: &Limits,
@@ -109,26 +116,24 @@ fn snap(
         let p = mesh.positions[n as usize];
         (0..3).map(|k| (p[k] - point[k]).powi(2)).sum::<f64>()
     };
+    let free = || mesh.surface_nodes.iter().copied().filter(|&n| !mesh.is_fixed(n));
     if radius == 0.0 {
-        let nearest = mesh
-            .surface_nodes
-            .iter()
-            .copied()
-            .min_by(|&a, &b| distance_sq(a).total_cmp(&distance_sq(b)));
+        let nearest = free().min_by(|&a, &b| distance_sq(a).total_cmp(&distance_sq(b)));
         return match nearest {
             Some(node) => add(out, limits, mesh, g, node, u),
-            None => Err(EngineError::invalid("the mesh has no surface nodes")),
+            None => Err(EngineError::invalid("the mesh has no free surface nodes")),
         };
     }
     let before = out.len();
-    for &node in &mesh.surface_nodes {
+    for node in free() {
         if distance_sq(node) <= radius * radius {
             add(out, limits, mesh, g, node, u)?;
         }
     }
     if out.len() == before && !out.nodes.iter().any(|&n| distance_sq(n) <= radius * radius) {
         return Err(EngineError::invalid(format!(
-            "grasps[{g}] holds no node: no surface node lies within {:.1} mm of {point:?}",
+            "grasps[{g}] holds no node: no free surface node lies within {:.1} mm of {point:?} (nodes of \
+             the `fixed` set are held by the fixture)",
             radius * 1e3
         )));
     }

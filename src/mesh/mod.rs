@@ -137,6 +137,13 @@ impl TetMesh {
         self.positions.len()
     }
 
+    /// Whether `node` is in the `fixed` set (held by the fixture: zero displacement).
+    pub fn is_fixed(&self, node: u32) -> bool {
+        self.node_sets
+            .get("fixed")
+            .is_some_and(|fixed| fixed.binary_search(&node).is_ok())
+    }
+
     pub fn total_volume(&self) -> f64 {
         self.tet_volumes.iter().sum()
     }
