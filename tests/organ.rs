@@ -1,6 +1,8 @@
 //! `nak organ new`: a surface written by the test, meshed and labelled, its Green's functions cached,
-//! and served at once: green-linear over gRPC equals the linear finite-element solve on the made mesh.
-//! The meshing stage runs the `nak_organ` package with the project's `.venv` (scripts/setup-python).
+//! a small network trained on its linear data and scored on another seed, and all of it served:
+//! green-linear over gRPC equals the linear finite-element solve on the made mesh, and the network
+//! answers. The meshing and training stages run the `nak_organ` and `nak_training` packages with the
+//! project's `.venv` (scripts/setup-python --training).
 
 mod common;
 
@@ -68,13 +70,24 @@ fn ellipsoid_stl(path: &Path, leave_out: Option<usize>) {
     std::fs::write(path, stl).unwrap();
 }
 
+/// The coarse setting: 500 nodes, three grasp regions, a network of 300 steps on 200 samples.
 fn organ_new(surface: &Path, out: &Path, cache: &Path) -> Output {
     nak()
         .current_dir(repo())
         .args(["organ", "new"])
         .arg(surface)
         .args(["--units", "mm", "--fixed", "sphere:0,0,-25,12", "--grasp-regions", "3"])
-        .args(["--target-nodes", "500", "--out"])
+        .args([
+            "--target-nodes",
+            "500",
+            "--samples",
+            "200",
+            "--held-out",
+            "60",
+            "--steps",
+            "300",
+        ])
+        .arg("--out")
         .arg(out)
         .arg("--cache-dir")
         .arg(cache)
@@ -99,21 +112,36 @@ fn a_surface_becomes_a_served_organ_whose_green_linear_is_the_linear_fem_solve()
     let said = text(&made.stdout);
     assert!(made.status.success(), "{said}\n{}", text(&made.stderr));
     for stage in [
-        "[1/3] mesh: made",
-        "[2/3] green-linear",
-        "[3/3] green-tangent",
+        "[1/6] mesh: made",
+        "[2/6] green-linear",
+        "[3/6] green-tangent",
+        "serves the exact models",
+        "[4/6] data",
+        "[5/6] network",
+        "(ONNX Runtime checked against PyTorch)",
+        "[6/6] score: DCM",
+        "on 60 held-out samples of seed 1",
         "is ready",
     ] {
         assert!(said.contains(stage), "{stage}: {said}");
     }
-    // Run again, nothing changed: the mesh is not made again and the caches are read.
+    let manifest = std::fs::read_to_string(out.join("pod-res/manifest.toml")).unwrap();
+    assert!(
+        manifest.contains("split = \"all\"") && manifest.contains("scored_on_seed = 1"),
+        "{manifest}"
+    );
+    // Run again, nothing changed: nothing is made again.
     let again = organ_new(&surface, &out, &cache);
     let said = text(&again.stdout);
-    assert!(
-        again.status.success() && said.contains("up to date, not made again"),
-        "{said}"
-    );
+    assert!(again.status.success(), "{said}\n{}", text(&again.stderr));
+    for skipped in ["mesh: ", "network: "] {
+        assert!(
+            said.contains(&format!("{skipped}{}", out.display())) && said.contains("up to date"),
+            "{said}"
+        );
+    }
     assert_eq!(said.matches("already cached").count(), 2, "{said}");
+    assert!(!said.contains("trained and exported"), "{said}");
 
     let mut serve = nak();
     serve
@@ -127,7 +155,7 @@ fn a_surface_becomes_a_served_organ_whose_green_linear_is_the_linear_fem_solve()
     let held = organ.node_sets["grasp_01"][0];
     let pull = [0.0, 0.004, 0.002];
     let runtime = tokio::runtime::Runtime::new().unwrap();
-    let (models, field) = runtime.block_on(async {
+    let (models, field, network) = runtime.block_on(async {
         let mut client = DeformationClient::connect(format!("http://{address}")).await.unwrap();
         let models = client
             .list_models(ListModelsRequest {})
@@ -135,9 +163,9 @@ fn a_surface_becomes_a_served_organ_whose_green_linear_is_the_linear_fem_solve()
             .unwrap()
             .into_inner()
             .models;
-        let answer = client
-            .predict(PredictRequest {
-                model: "green-linear".into(),
+        let mut answer = async |model: &str| -> Vec<f64> {
+            let request = PredictRequest {
+                model: model.into(),
                 grasps: vec![Grasp {
                     nodes: vec![held],
                     displacement: Some(Vec3 {
@@ -148,19 +176,20 @@ fn a_surface_becomes_a_served_organ_whose_green_linear_is_the_linear_fem_solve()
                     ..Default::default()
                 }],
                 ..Default::default()
-            })
-            .await
-            .unwrap()
-            .into_inner();
-        let field: Vec<f64> = answer
-            .displacements
-            .chunks_exact(4)
-            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]) as f64)
-            .collect();
-        (models, field)
+            };
+            let answer = client.predict(request).await.unwrap().into_inner();
+            answer
+                .displacements
+                .chunks_exact(4)
+                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]) as f64)
+                .collect()
+        };
+        let field = answer("green-linear").await;
+        let network = answer("pod-res").await;
+        (models, field, network)
     });
     let names: Vec<&str> = models.iter().map(|m| m.name.as_str()).collect();
-    for model in ["kelvinlet", "green-linear", "green-tangent"] {
+    for model in ["kelvinlet", "green-linear", "green-tangent", "pod-res"] {
         assert!(names.contains(&model), "{model} not served: {names:?}");
     }
     let direct = solve_dirichlet(&organ, &[(held, pull)]).unwrap();
@@ -176,6 +205,17 @@ fn a_surface_becomes_a_served_organ_whose_green_linear_is_the_linear_fem_solve()
     assert!(
         relative < 1e-5,
         "green-linear differs from the direct solve by {relative:e}"
+    );
+    // The network answers every node, finitely, and moves the held node (300 steps cannot make it exact).
+    assert_eq!(network.len(), field.len());
+    assert!(
+        network.iter().all(|v| v.is_finite()),
+        "pod-res answered a non-finite field"
+    );
+    let moved = &network[3 * held as usize..3 * held as usize + 3];
+    assert!(
+        moved.iter().any(|v| v.abs() > 1e-4),
+        "pod-res left the held node at rest: {moved:?}"
     );
     let (exit, log) = server.stop();
     assert!(exit.success(), "{log:?}");

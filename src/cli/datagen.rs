@@ -64,9 +64,23 @@ pub struct DatagenArgs {
     /// (--out); `nak dataset join` assembles the N shard directories into the whole dataset.
     #[arg(long, value_name = "I/N")]
     shard: Option<Shard>,
-    /// Where the Green's functions and the gravity preload are cached [default: $XDG_CACHE_HOME/nak or ~/.cache/nak].
+    /// Where the Green's functions and the gravity preload are cached [default: $NAK_CACHE_DIR, else $XDG_CACHE_HOME/nak or ~/.cache/nak].
     #[arg(long)]
     pub cache_dir: Option<PathBuf>,
+}
+
+impl DatagenArgs {
+    /// The arguments `words` would give on the command line, for commands that make a dataset as
+    /// one of their stages (`nak organ new`).
+    pub fn from_words(words: &[String]) -> anyhow::Result<Self> {
+        #[derive(clap::Parser)]
+        struct Datagen {
+            #[command(flatten)]
+            args: DatagenArgs,
+        }
+        let line = std::iter::once("nak datagen".to_owned()).chain(words.iter().cloned());
+        Ok(<Datagen as clap::Parser>::try_parse_from(line)?.args)
+    }
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]

@@ -28,8 +28,8 @@ pub struct ModelArgs {
     /// on first use and cached.
     #[arg(long)]
     pub green_tangent: bool,
-    /// Where Green's functions and the preloaded state are cached [default: $XDG_CACHE_HOME/nak or
-    /// ~/.cache/nak].
+    /// Where Green's functions and the preloaded state are cached [default: $NAK_CACHE_DIR, else
+    /// $XDG_CACHE_HOME/nak or ~/.cache/nak].
     #[arg(long, value_name = "DIR")]
     pub cache_dir: Option<PathBuf>,
     /// A directory whose subdirectories are models (manifest.toml + model.onnx); repeatable. A --mesh
@@ -162,6 +162,9 @@ pub fn load_green(mesh: &TetMesh, stiffness: Stiffness, cache: &Path) -> anyhow:
 }
 
 pub fn default_cache_dir() -> PathBuf {
+    if let Some(dir) = std::env::var_os("NAK_CACHE_DIR") {
+        return PathBuf::from(dir);
+    }
     std::env::var_os("XDG_CACHE_HOME")
         .map(PathBuf::from)
         .or_else(|| std::env::var_os("HOME").map(|h| PathBuf::from(h).join(".cache")))

@@ -284,7 +284,7 @@ pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
     }
     if let Some(path) = &args.output {
         let json = serde_json::json!({
-            "model": args.model, "data": args.data, "split": args.split, "regime": info.regime,
+            "model": args.model, "data": args.data, "split": args.split, "seed": info.seed, "regime": info.regime,
             "mesh_hash": info.mesh_hash, "subsets": results, "grasp_forces": forces,
             "failed_samples": failed,
             "latency_us": latency, "threads": rayon::current_num_threads(),

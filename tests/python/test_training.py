@@ -220,6 +220,27 @@ def test_a_run_is_not_resumed_on_data_of_another_volumetric_law(coarse_data: Pat
         export(config, older, run, tmp_path / "models", log=quiet)
 
 
+def test_a_run_is_not_resumed_on_another_set(coarse_data: Path, tmp_path: Path) -> None:
+    config = parse_config(tiny_config(method="reg", steps=3), "tiny")
+    run = tmp_path / "run"
+    run.mkdir()
+    dataset = open_dataset(coarse_data)
+    Trainer(config, dataset, run, log=quiet).run()
+    # The same set resumes; one with other chunks on disk (a set still being made) or another seed does not.
+    Trainer(config, dataset, run, log=quiet)
+    partial = tmp_path / "partial"
+    shutil.copytree(coarse_data, partial)
+    (partial / "chunk-00001.json").unlink()
+    with pytest.raises(TrainingInputError, match=r"was trained on \d+ train samples of a 100-sample set of seed 3; "):
+        Trainer(config, open_dataset(partial), run, log=quiet)
+    reseeded = tmp_path / "reseeded"
+    shutil.copytree(coarse_data, reseeded)
+    info = json.loads((reseeded / "dataset.json").read_text())
+    (reseeded / "dataset.json").write_text(json.dumps({**info, "seed": 5}))
+    with pytest.raises(TrainingInputError, match=r"of seed 5: a run is not resumed on another set"):
+        Trainer(config, open_dataset(reseeded), run, log=quiet)
+
+
 @pytest.fixture(scope="module")
 def exported(coarse_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Path, Path]]:
     """A trained and an untrained +Res PointNet exported from the coarse dataset: (models root, runs)."""

@@ -45,6 +45,12 @@ def main(argv: list[str] | None = None) -> int:
         command.add_argument("--mesh", type=Path, default=DEFAULT_MESH, help="the dataset's mesh (evaluate)")
         command.add_argument("--steps", type=int, help="override the configuration's step count")
         command.add_argument(
+            "--split",
+            default="test",
+            choices=["train", "val", "test", "all"],
+            help="the samples of --data evaluate scores on (all: a held-out set of another seed)",
+        )
+        command.add_argument(
             "--train-samples", type=int, help="train on this many samples (a learning curve's point; name gets -nN)"
         )
     report = commands.add_parser("report", help="the results table and the accuracy-latency figure")
@@ -117,5 +123,5 @@ def run(command: str, config: TrainConfig, args: argparse.Namespace) -> None:
     if command in ("evaluate", "all"):
         from .evaluate import evaluate
 
-        metrics = evaluate(args.out / config.name, args.data, args.nak, args.mesh)
+        metrics = evaluate(args.out / config.name, args.data, args.nak, args.mesh, args.split)
         print(f"{config.name}: [metrics] written: {metrics}")

@@ -37,7 +37,7 @@ def nak_eval(
 
 def metrics_of(report: dict[str, Any]) -> dict[str, Any]:
     """The flat [metrics] table of a manifest from a `nak eval` report."""
-    metrics: dict[str, Any] = {"split": report["split"]}
+    metrics: dict[str, Any] = {"split": report["split"], "scored_on_seed": report.get("seed")}
     for subset, s in report["subsets"].items():
         metrics[f"dcm_{subset}"] = round(s["dcm"], 3)
         metrics[f"dcm_nodal_{subset}"] = round(s["dcm_nodal"], 3)
@@ -66,9 +66,9 @@ def force_metrics_of(report: dict[str, Any]) -> dict[str, Any]:
     return metrics
 
 
-def evaluate(model_dir: Path, data: Path, nak: Path, mesh: Path) -> dict[str, Any]:
-    """Scores the model in `model_dir` and writes its [metrics] (and, for a model with learned forces,
-    their test error in [forces]); returns the metrics."""
+def evaluate(model_dir: Path, data: Path, nak: Path, mesh: Path, split: str = "test") -> dict[str, Any]:
+    """Scores the model in `model_dir` on `split` of `data` and writes its [metrics] (and, for a model
+    with learned forces, their error in [forces]); returns the metrics."""
     manifest_path = model_dir / "manifest.toml"
     try:
         manifest = tomllib.loads(manifest_path.read_text())
@@ -78,7 +78,7 @@ def evaluate(model_dir: Path, data: Path, nak: Path, mesh: Path) -> dict[str, An
     # nak loads every model under --models: give it a directory holding only this one.
     with tempfile.TemporaryDirectory() as alone:
         (Path(alone) / model_dir.name).symlink_to(model_dir.resolve(), target_is_directory=True)
-        report = nak_eval(nak, data, name, mesh, Path(alone))
+        report = nak_eval(nak, data, name, mesh, Path(alone), split)
     kept = {k: v for k, v in manifest.get("metrics", {}).items() if k == "val_dcm" or k.startswith(CEILING_PREFIX)}
     metrics = {**kept, **metrics_of(report)}
     written = {k: v for k, v in metrics.items() if v is not None}

@@ -194,6 +194,13 @@ class Run:
             raise TrainingInputError(
                 path, f"was trained on mesh {checkpoint.get('mesh_hash')}; this dataset is {self.mesh.content_hash}"
             )
+        trained_on, here = checkpoint.get("data"), self._data_description()
+        if trained_on is not None and trained_on != here:
+            raise TrainingInputError(
+                path,
+                f"was trained on {describe_data(trained_on)}; {self.dataset.root} gives {describe_data(here)}: a run "
+                "is not resumed on another set (use a new run directory)",
+            )
         trained_law = self.dataset.law_of_run(checkpoint)
         if trained_law != self.dataset.volumetric_law:
             raise TrainingInputError(
@@ -265,10 +272,20 @@ class Run:
         (self.run_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
         return summary
 
+    def _data_description(self) -> dict[str, int]:
+        """What a run's data is, for telling it from another set on resume: seed, size, train samples."""
+        info = self.dataset.info
+        return {
+            "seed": self.dataset.seed,
+            "samples": int(info["single"]) + int(info["multi"]),
+            "train_samples": len(self.train),
+        }
+
     def _checkpoint(self) -> None:
         checkpoint = {
             "config": self.config.to_dict(),
             "mesh_hash": self.mesh.content_hash,
+            "data": self._data_description(),
             "volumetric_law": self.dataset.volumetric_law,
             "model": self.model.state_dict(),
             "optimizer": self.optimizer.state_dict(),
@@ -281,6 +298,10 @@ class Run:
         tmp = self.run_dir / "checkpoint.pt.partial"
         torch.save(checkpoint, tmp)
         tmp.replace(self.run_dir / "checkpoint.pt")
+
+
+def describe_data(data: dict[str, int]) -> str:
+    return f"{data['train_samples']} train samples of a {data['samples']}-sample set of seed {data['seed']}"
 
 
 class Trainer(Run):
