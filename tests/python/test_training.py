@@ -233,6 +233,12 @@ def test_a_run_is_not_resumed_on_another_set(coarse_data: Path, tmp_path: Path) 
     (partial / "chunk-00001.json").unlink()
     with pytest.raises(TrainingInputError, match=r"was trained on \d+ train samples of a 100-sample set of seed 3; "):
         Trainer(config, open_dataset(partial), run, log=quiet)
+    # Trained on a set still being made, the summary names the chunks it had (the whole set's names none).
+    assert "chunks" not in json.loads((run / "summary.json").read_text())
+    early = tmp_path / "early"
+    early.mkdir()
+    Trainer(config, open_dataset(partial), early, log=quiet).run()
+    assert json.loads((early / "summary.json").read_text())["chunks"] == [0]
     reseeded = tmp_path / "reseeded"
     shutil.copytree(coarse_data, reseeded)
     info = json.loads((reseeded / "dataset.json").read_text())

@@ -114,16 +114,20 @@ class Dataset:
         size = int(self.info["chunk_size"])
         return -(-total // size)
 
-    def load(self, split: str, subsets: tuple[str, ...] = SUBSETS) -> Split:
-        """Every complete, successfully solved sample of `split` in `subsets`."""
+    def complete_chunks(self) -> list[int]:
+        """The chunks on disk now (a chunk's JSON is written last): all of them unless the set is still
+        being made."""
+        return [c for c in range(self.chunk_count()) if (self.root / f"chunk-{c:05d}.json").is_file()]
+
+    def load(self, split: str, subsets: tuple[str, ...] = SUBSETS, chunks: list[int] | None = None) -> Split:
+        """Every complete, successfully solved sample of `split` in `subsets` (of `chunks` only, when
+        given: a set still being made is read as it stood at one moment)."""
         if split not in SPLITS:
             raise TrainingInputError(self.root, f"unknown split {split!r}: expected one of {SPLITS}")
         samples: list[Sample] = []
         fields: list[np.ndarray] = []
-        for chunk in range(self.chunk_count()):
+        for chunk in self.complete_chunks() if chunks is None else chunks:
             records_path = self.root / f"chunk-{chunk:05d}.json"
-            if not records_path.is_file():
-                continue
             records = read_json(records_path)
             if not isinstance(records, list):
                 raise TrainingInputError(records_path, "expected a list of samples")

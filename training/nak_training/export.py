@@ -226,6 +226,8 @@ def provenance(config: TrainConfig, dataset: Dataset, summary: dict[str, Any], s
         "dataset_multi": int(dataset.info["multi"]),
         "train_samples": int(summary["train_samples"]),
         "val_samples": int(summary["val_samples"]),
+        # Trained while the set was still being made: the chunks it had, to retrain on the same samples.
+        **({"dataset_chunks": summary["chunks"]} if "chunks" in summary else {}),
         "steps": int(summary["steps"]),
         "parameters": int(summary["parameters"]),
         "training_time_s": float(summary["training_time_s"]),

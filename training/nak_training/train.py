@@ -107,10 +107,12 @@ class Run:
         torch.manual_seed(config.seed)
         self.mesh = dataset.mesh
         self.generator = torch.Generator().manual_seed(config.seed)
-        self.train = dataset.load("train", config.subsets)
+        # A set still being made is read as it stood now; its summary names the chunks it had.
+        self.chunks = dataset.complete_chunks()
+        self.train = dataset.load("train", config.subsets, self.chunks)
         if config.train_samples:
             self.train = spread(self.train, config.train_samples)
-        self.val = spread(dataset.load("val", config.subsets), config.val_samples)
+        self.val = spread(dataset.load("val", config.subsets, self.chunks), config.val_samples)
         self.log(
             f"{config.name}: {config.architecture} ({config.size}) {config.method}, {len(self.train)} train / "
             f"{len(self.val)} val samples ({config.subset}), mesh {self.mesh.name} {self.mesh.node_count} nodes"
@@ -266,6 +268,7 @@ class Run:
             "volumetric_law": self.dataset.volumetric_law,
             "train_samples": len(self.train),
             "val_samples": len(self.val),
+            **({"chunks": self.chunks} if len(self.chunks) < self.dataset.chunk_count() else {}),
             "parameters": parameter_count(self.model),
             "history": self.history,
         }
