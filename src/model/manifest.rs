@@ -273,6 +273,20 @@ impl Manifest {
                 ),
             ));
         }
+        // A nonlinear network answers under the law of its training data; served beside a mesh of
+        // another law it would disagree with the mesh's own green-tangent and ground truth.
+        if let Some(law) = self.volumetric_law()
+            && law != mesh.config.volumetric_law
+        {
+            return Err(ModelLoadError::new(
+                origin,
+                format!(
+                    "trained on data solved under the volumetric law {law}; the served mesh {:?} is solved \
+                     under {}: retrain it on data of the mesh's law",
+                    mesh.config.name, mesh.config.volumetric_law
+                ),
+            ));
+        }
         Ok(())
     }
 }
@@ -309,5 +323,29 @@ mod tests {
             error.contains("neo-hookean") && error.contains("ln-j-squared"),
             "{error}"
         );
+    }
+
+    #[test]
+    fn a_nonlinear_model_of_another_law_than_the_served_mesh_is_refused_naming_both() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("models/phantom-liver/liver-coarse.msh");
+        let mesh = crate::mesh::load(&crate::mesh::MeshSource::File(path)).unwrap();
+        assert_eq!(mesh.config.volumetric_law, VolumetricLaw::LnJSquared);
+        let made_for = |regime: &str, law: &str| {
+            let mut m = manifest(regime, law);
+            m.mesh.content_hash = mesh.content_hash.clone();
+            m.mesh.node_count = mesh.node_count();
+            m
+        };
+        let old = made_for("nonlinear", "volumetric_law = \"j-minus-one-squared\"\n");
+        let error = old.check_against(&mesh, "models/m").unwrap_err().to_string();
+        assert!(
+            error.contains("models/m") && error.contains("j-minus-one-squared") && error.contains("ln-j-squared"),
+            "{error}"
+        );
+        // A nonlinear model from before manifests named a law was made under the old one.
+        assert!(made_for("nonlinear", "").check_against(&mesh, "m").is_err());
+        let today = made_for("nonlinear", "volumetric_law = \"ln-j-squared\"\n");
+        assert!(today.check_against(&mesh, "m").is_ok());
+        assert!(made_for("linear", "").check_against(&mesh, "m").is_ok());
     }
 }

@@ -50,7 +50,7 @@ async function start() {
   renderer.upload();
   $("mesh-name").textContent = `${mesh.name}: ${mesh.nodeCount} nodes, ${surface.count} on the surface`;
   const picker = $("model");
-  for (const model of models) {
+  for (const model of byRegimeThenAccuracy(models)) {
     const option = document.createElement("option");
     option.value = model.name;
     const dcm = testDcm(model);
@@ -82,6 +82,14 @@ async function start() {
   window.addEventListener("resize", () => { state.needsDraw = true; });
   state.ready = true;
   requestAnimationFrame(frame);
+}
+
+// Each regime's models together, the most accurate on held-out data first and unscored ones (the
+// prior, the exact models) after them, in the server's order.
+function byRegimeThenAccuracy(models) {
+  const regimes = [...new Set(models.map((m) => m.regime))];
+  const score = (m) => (Number.isFinite(testDcm(m)) ? testDcm(m) : -Infinity);
+  return [...models].sort((a, b) => regimes.indexOf(a.regime) - regimes.indexOf(b.regime) || score(b) - score(a));
 }
 
 // The model's DCM (%) on its dataset's test split, measured through nak eval (manifest [metrics]).
