@@ -20,9 +20,9 @@ fn repo() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
 }
 
-/// An ellipsoid of semi-axes 40, 30 and 25 mm as an ASCII STL: a latitude–longitude net, closed at
-/// its poles, its triangles facing out. `leave_out` drops one triangle (an open surface).
-fn ellipsoid_stl(path: &Path, leave_out: Option<usize>) {
+/// An ellipsoid of semi-axes 40, 30 and 25 mm: a latitude–longitude net, closed at its poles, its
+/// triangles facing out. `leave_out` drops one triangle (an open surface).
+fn ellipsoid(leave_out: Option<usize>) -> Vec<[[f64; 3]; 3]> {
     let (rings, segments) = (12, 24);
     let point = |i: usize, j: usize| -> [f64; 3] {
         let (theta, phi) = (
@@ -48,13 +48,21 @@ fn ellipsoid_stl(path: &Path, leave_out: Option<usize>) {
             }
         }
     }
-    // Written to the micrometre, with no negative zeros, so that shared corners read as one vertex.
-    let number = |v: f64| format!("{:.6}", (v * 1e6).round() / 1e6 + 0.0);
+    if let Some(k) = leave_out {
+        triangles.remove(k);
+    }
+    triangles
+}
+
+/// A coordinate to the micrometre, with no negative zeros, so that shared corners read as one vertex.
+fn number(v: f64) -> String {
+    format!("{:.6}", (v * 1e6).round() / 1e6 + 0.0)
+}
+
+/// The ellipsoid as an ASCII STL (mm).
+fn ellipsoid_stl(path: &Path, leave_out: Option<usize>) {
     let mut stl = String::from("solid ellipsoid\n");
-    for (k, t) in triangles.iter().enumerate() {
-        if Some(k) == leave_out {
-            continue;
-        }
+    for t in ellipsoid(leave_out) {
         stl.push_str("  facet normal 0 0 0\n    outer loop\n");
         for p in t {
             stl.push_str(&format!(
@@ -70,23 +78,44 @@ fn ellipsoid_stl(path: &Path, leave_out: Option<usize>) {
     std::fs::write(path, stl).unwrap();
 }
 
+/// The ellipsoid as a Wavefront OBJ (mm): each corner once, faces by 1-based vertex index.
+fn ellipsoid_obj(path: &Path) {
+    let (mut vertices, mut faces) = (Vec::<String>::new(), String::new());
+    for t in ellipsoid(None) {
+        let mut face = String::from("f");
+        for p in t {
+            let v = format!("{} {} {}", number(p[0]), number(p[1]), number(p[2]));
+            let index = vertices.iter().position(|w| *w == v).unwrap_or_else(|| {
+                vertices.push(v);
+                vertices.len() - 1
+            });
+            face.push_str(&format!(" {}", index + 1));
+        }
+        faces.push_str(&face);
+        faces.push('\n');
+    }
+    let obj: String = vertices.iter().map(|v| format!("v {v}\n")).collect();
+    std::fs::write(path, obj + &faces).unwrap();
+}
+
 /// The coarse setting: 500 nodes, three grasp regions, a network of 300 steps on 200 samples.
 fn organ_new(surface: &Path, out: &Path, cache: &Path) -> Output {
+    organ_new_with(
+        surface,
+        out,
+        cache,
+        &["--samples", "200", "--held-out", "60", "--steps", "300"],
+    )
+}
+
+fn organ_new_with(surface: &Path, out: &Path, cache: &Path, options: &[&str]) -> Output {
     nak()
         .current_dir(repo())
         .args(["organ", "new"])
         .arg(surface)
         .args(["--units", "mm", "--fixed", "sphere:0,0,-25,12", "--grasp-regions", "3"])
-        .args([
-            "--target-nodes",
-            "500",
-            "--samples",
-            "200",
-            "--held-out",
-            "60",
-            "--steps",
-            "300",
-        ])
+        .args(["--target-nodes", "500"])
+        .args(options)
         .arg("--out")
         .arg(out)
         .arg("--cache-dir")
@@ -219,6 +248,38 @@ fn a_surface_becomes_a_served_organ_whose_green_linear_is_the_linear_fem_solve()
     );
     let (exit, log) = server.stop();
     assert!(exit.success(), "{log:?}");
+}
+
+#[test]
+fn an_obj_surface_becomes_an_organ_whose_exact_models_are_ready_without_a_network() {
+    let dir = tempfile::tempdir().unwrap();
+    let (surface, out, cache) = (
+        dir.path().join("ellipsoid.obj"),
+        dir.path().join("organ"),
+        dir.path().join("cache"),
+    );
+    ellipsoid_obj(&surface);
+    let made = organ_new_with(&surface, &out, &cache, &["--no-network"]);
+    let said = text(&made.stdout);
+    assert!(made.status.success(), "{said}\n{}", text(&made.stderr));
+    for stage in [
+        "[1/3] mesh: made",
+        "[2/3] green-linear",
+        "[3/3] green-tangent",
+        "serves the exact models",
+    ] {
+        assert!(said.contains(stage), "{stage}: {said}");
+    }
+    assert!(!said.contains("[4/") && !out.join("data").exists(), "{said}");
+    let organ = mesh::load(&MeshSource::Directory(out)).unwrap();
+    assert!(
+        (400..=600).contains(&organ.node_count()),
+        "{} nodes",
+        organ.node_count()
+    );
+    for set in ["fixed", "grasp_01", "grasp_02", "grasp_03"] {
+        assert!(!organ.node_sets[set].is_empty(), "{set} is empty");
+    }
 }
 
 #[test]
