@@ -92,3 +92,26 @@ def test_a_dataset_job_runs_one_shard_per_completion_index(nak_binary: Path, nam
         for v in load(f)["spec"]["template"]["spec"]["volumes"]
     }
     assert volumes == {load("datagen/volume.yaml")["metadata"]["name"]}
+
+
+def test_the_organ_job_makes_the_set_nak_organ_new_looks_for(nak_binary: Path) -> None:
+    """organ-nonlinear.yaml shards the nonlinear set of an organ under DIR/data, and organ-join.yaml
+    joins it where `nak organ new` looks (DIR/data/<SET>); both name the same organ and set."""
+    job = load("datagen/organ-nonlinear.yaml")["spec"]
+    container = job["template"]["spec"]["containers"][0]
+    env = {e["name"]: e.get("value") for e in container["env"]}
+    assert re.fullmatch(r"nonlinear-seed0-\d+-[0-9a-f]{8}", env["SET"]), env["SET"]
+    args: list[str] = container["args"]
+    assert args[0] == "datagen"
+    help_text = help_flags(nak_binary, "datagen")
+    options = dict(a.split("=", 1) for a in args[1:])
+    for flag in options:
+        assert takes(help_text, flag), f"nak datagen has no {flag}"
+    # The words stage 4 runs for the nonlinear training set (seed 0, the paper preset's default size).
+    assert (options["--mesh"], options["--regime"], options["--seed"]) == ("/data/$(ORGAN)", "nonlinear", "0")
+    assert "--preset" not in options and "--chunk-size" not in options, "the organ's set keeps datagen's defaults"
+    assert options["--shard"] == f"$(SHARD)/{job['completions']}"
+    assert options["--out"] == "/data/$(ORGAN)/data/$(SET).shards/$(SHARD)"
+    join = load("datagen/organ-join.yaml")["spec"]["template"]["spec"]["containers"][0]
+    assert {e["name"]: e.get("value") for e in join["env"]} == {"ORGAN": env["ORGAN"], "SET": env["SET"]}
+    assert '--out "/data/$ORGAN/data/$SET" /data/"$ORGAN"/data/"$SET".shards/*' in join["args"][0]
