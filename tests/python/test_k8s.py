@@ -34,6 +34,17 @@ def takes(help_text: str, flag: str) -> bool:
     return re.search(rf"^\s+{re.escape(flag)}\b", help_text, re.MULTILINE) is not None
 
 
+def datagen_options(nak_binary: Path, container: dict[str, Any]) -> dict[str, str]:
+    """A datagen container's `--flag=value` arguments, each checked to be one `nak datagen` takes."""
+    args: list[str] = container["args"]
+    assert args[0] == "datagen"
+    help_text = help_flags(nak_binary, "datagen")
+    options = dict(a.split("=", 1) for a in args[1:])
+    for flag in options:
+        assert takes(help_text, flag), f"nak datagen has no {flag}"
+    return options
+
+
 @pytest.mark.parametrize("path", MANIFESTS + DATAGEN, ids=lambda p: p.name)
 def test_manifests_are_valid_kubernetes(path: Path) -> None:
     for document in yaml.safe_load_all(path.read_text()):
@@ -72,12 +83,7 @@ def test_a_dataset_job_runs_one_shard_per_completion_index(nak_binary: Path, nam
     container = job["template"]["spec"]["containers"][0]
     shard_env = next(e for e in container["env"] if e["name"] == "SHARD")
     assert "job-completion-index" in shard_env["valueFrom"]["fieldRef"]["fieldPath"]
-    args: list[str] = container["args"]
-    assert args[0] == "datagen"
-    help_text = help_flags(nak_binary, "datagen")
-    options = dict(a.split("=", 1) for a in args[1:])
-    for flag in options:
-        assert takes(help_text, flag), f"nak datagen has no {flag}"
+    options = datagen_options(nak_binary, container)
     assert options["--shard"] == f"$(SHARD)/{job['completions']}"
     # Each shard writes a directory of its own under <dataset>/shards, which the join reads.
     dataset = options["--out"].removeprefix("/data/").split("/")[0]
@@ -101,12 +107,7 @@ def test_the_organ_job_makes_the_set_nak_organ_new_looks_for(nak_binary: Path) -
     container = job["template"]["spec"]["containers"][0]
     env = {e["name"]: e.get("value") for e in container["env"]}
     assert re.fullmatch(r"nonlinear-seed0-\d+-[0-9a-f]{8}", env["SET"]), env["SET"]
-    args: list[str] = container["args"]
-    assert args[0] == "datagen"
-    help_text = help_flags(nak_binary, "datagen")
-    options = dict(a.split("=", 1) for a in args[1:])
-    for flag in options:
-        assert takes(help_text, flag), f"nak datagen has no {flag}"
+    options = datagen_options(nak_binary, container)
     # The words stage 4 runs for the nonlinear training set (seed 0, the paper preset's default size).
     assert (options["--mesh"], options["--regime"], options["--seed"]) == ("/data/$(ORGAN)", "nonlinear", "0")
     assert "--preset" not in options and "--chunk-size" not in options, "the organ's set keeps datagen's defaults"
