@@ -120,6 +120,8 @@ pub struct TetMesh {
     /// Sorted indices of the nodes on the boundary.
     pub surface_nodes: Vec<u32>,
     pub is_surface: Vec<bool>,
+    /// Whether each node is in the `fixed` set: asked per node when requests are resolved.
+    is_fixed: Vec<bool>,
     /// Area-weighted unit normals at surface nodes; zero inside.
     pub normals: Vec<Vec3>,
     pub tet_volumes: Vec<f64>,
@@ -139,9 +141,7 @@ impl TetMesh {
 
     /// Whether `node` is in the `fixed` set (held by the fixture: zero displacement).
     pub fn is_fixed(&self, node: u32) -> bool {
-        self.node_sets
-            .get("fixed")
-            .is_some_and(|fixed| fixed.binary_search(&node).is_ok())
+        self.is_fixed.get(node as usize).copied().unwrap_or(false)
     }
 
     pub fn total_volume(&self) -> f64 {
@@ -242,6 +242,10 @@ impl TetMesh {
         let normals = topology::vertex_normals(&surface, &positions);
         let nodal_volumes = topology::lumped_volumes(&tets, &tet_volumes, positions.len());
         let content_hash = content_hash(&positions, &tets, &tet_region, &regions, &node_sets);
+        let mut is_fixed = vec![false; positions.len()];
+        for &n in node_sets.get("fixed").into_iter().flatten() {
+            is_fixed[n as usize] = true;
+        }
         Ok(TetMesh {
             origin: origin.to_owned(),
             config,
@@ -254,6 +258,7 @@ impl TetMesh {
             surface,
             surface_nodes,
             is_surface,
+            is_fixed,
             normals,
             tet_volumes,
             nodal_volumes,

@@ -10,6 +10,7 @@ use std::time::Instant;
 
 use anyhow::{Context, bail};
 use nak::mesh::TetMesh;
+use nak::model::Manifest;
 
 use super::{OrganNewArgs, Stamp, hash_package};
 use crate::cli::datagen::{self, DatagenArgs};
@@ -248,14 +249,10 @@ fn training_command(
 fn score(model_dir: &Path) -> anyhow::Result<String> {
     let path = model_dir.join("manifest.toml");
     let text = std::fs::read_to_string(&path).with_context(|| format!("cannot read {}", path.display()))?;
-    let manifest: toml::Table = text
-        .parse()
-        .with_context(|| format!("{} is not TOML", path.display()))?;
-    let metrics = manifest.get("metrics").and_then(|m| m.as_table());
+    let manifest = Manifest::parse(&text, &path.display().to_string())?;
     let figure = |key: &str| {
-        metrics
-            .and_then(|m| m.get(key))
-            .and_then(|v| v.as_float().or(v.as_integer().map(|i| i as f64)))
+        let value = manifest.metrics.get(key)?;
+        value.as_float().or(value.as_integer().map(|i| i as f64))
     };
     match (figure("dcm_combined"), figure("samples_combined")) {
         (Some(dcm), Some(samples)) => Ok(format!(
