@@ -28,28 +28,87 @@ fn serve_answers_on_the_embedded_phantom_and_stops_cleanly_on_sigterm() {
             .into_inner();
         assert_eq!(mesh.name, "phantom-liver");
         let node = mesh.node_sets.iter().find(|s| s.name == "grasp_04").unwrap().nodes[0];
-        client
-            .predict(PredictRequest {
-                grasps: vec![Grasp {
-                    nodes: vec![node],
-                    displacement: Some(Vec3 {
-                        x: 0.0,
-                        y: 0.02,
-                        z: 0.0,
-                    }),
-                    ..Default::default()
-                }],
-                ..Default::default()
-            })
-            .await
-            .unwrap()
-            .into_inner()
+        client.predict(lift("", node)).await.unwrap().into_inner()
     });
     assert!(response.node_count > 9_500);
     let (exit, rest) = server.stop();
     assert!(exit.success(), "exit {exit:?}; log: {rest:?}");
     assert!(rest.iter().any(|l| l.contains("SIGTERM")), "{rest:?}");
     assert!(rest.iter().any(|l| l.contains("\"stopped\"")), "{rest:?}");
+}
+
+/// A grasp of `node` by 2 cm upwards, for the model `model` (empty: the server's default).
+fn lift(model: &str, node: u32) -> PredictRequest {
+    PredictRequest {
+        model: model.into(),
+        grasps: vec![Grasp {
+            nodes: vec![node],
+            displacement: Some(Vec3 {
+                x: 0.0,
+                y: 0.02,
+                z: 0.0,
+            }),
+            ..Default::default()
+        }],
+        ..Default::default()
+    }
+}
+
+#[test]
+fn serve_regime_nonlinear_answers_a_request_naming_no_model_with_the_most_accurate_nonlinear_network() {
+    common::models::ort();
+    let mut serve = nak();
+    serve.args(["serve", "--regime", "nonlinear"]);
+    let server = ServeProcess::start(serve);
+    let address = server.address.clone();
+    let runtime = tokio::runtime::Runtime::new().unwrap();
+    runtime.block_on(async {
+        let mut client = DeformationClient::connect(format!("http://{address}")).await.unwrap();
+        let listed = client
+            .list_models(nak::proto::v1::ListModelsRequest {})
+            .await
+            .unwrap()
+            .into_inner();
+        let dcm = |m: &nak::proto::v1::ModelInfo| m.metadata.get("metrics.dcm_combined")?.parse::<f64>().ok();
+        let best = listed
+            .models
+            .iter()
+            .filter(|m| m.regime == "nonlinear")
+            .filter_map(|m| Some((dcm(m)?, m.name.clone())))
+            .max_by(|a, b| a.0.total_cmp(&b.0))
+            .expect("the phantom ships scored nonlinear networks")
+            .1;
+        assert_eq!(listed.default_model, best);
+        let mesh = client
+            .get_mesh(nak::proto::v1::GetMeshRequest::default())
+            .await
+            .unwrap()
+            .into_inner();
+        let node = mesh.node_sets.iter().find(|s| s.name == "grasp_04").unwrap().nodes[0];
+        let unnamed = client.predict(lift("", node)).await.unwrap().into_inner();
+        let named = client.predict(lift(&best, node)).await.unwrap().into_inner();
+        assert_eq!(unnamed.model, best);
+        assert_eq!(unnamed.displacements, named.displacements);
+    });
+    let (exit, rest) = server.stop();
+    assert!(exit.success(), "exit {exit:?}; log: {rest:?}");
+}
+
+#[test]
+fn serve_regime_with_no_model_of_that_regime_does_not_start_and_says_what_is_served() {
+    let output = nak()
+        .args(["serve", "--listen", "127.0.0.1:0", "--regime", "nonlinear", "--mesh"])
+        .arg(repo("models/phantom-liver/liver-coarse.msh"))
+        .output()
+        .unwrap();
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        stderr.contains("--regime nonlinear")
+            && stderr.contains("no nonlinear model")
+            && stderr.contains("served: kelvinlet"),
+        "{stderr}"
+    );
 }
 
 #[test]

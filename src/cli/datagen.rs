@@ -10,6 +10,7 @@ use anyhow::Context;
 use nak::data::dataset::{DatasetInfo, SPLIT_RULE, SolverLimits};
 use nak::data::generate::{NonlinearTally, generate_linear, generate_nonlinear};
 use nak::data::shard::Shard;
+use nak::engine::Regime;
 use nak::fem::nonlinear::{Elimination, NewtonOptions};
 use nak::fem::preload::Preloaded;
 use nak::fem::{GreenFunctions, Stiffness};
@@ -84,14 +85,6 @@ impl DatagenArgs {
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
-enum Regime {
-    /// Small-strain linear elasticity (docs/design.md §4).
-    Linear,
-    /// Compressible Mooney–Rivlin from the gravity-preloaded state (docs/design.md §4).
-    Nonlinear,
-}
-
-#[derive(Clone, Copy, clap::ValueEnum)]
 enum Preset {
     Paper,
     Tiny,
@@ -119,10 +112,7 @@ pub fn run(args: DatagenArgs, mesh: &TetMesh, cache: PathBuf) -> anyhow::Result<
         mesh_name: mesh.config.name.clone(),
         mesh_hash: mesh.content_hash.clone(),
         node_count: mesh.node_count(),
-        regime: match args.regime {
-            Regime::Linear => "linear".into(),
-            Regime::Nonlinear => "nonlinear".into(),
-        },
+        regime: args.regime.name().into(),
         seed: args.seed,
         single: args.single.unwrap_or(single),
         multi: args.multi.unwrap_or(multi),

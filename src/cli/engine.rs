@@ -122,6 +122,15 @@ pub fn build_engine(config: &ServeConfig) -> anyhow::Result<Engine> {
             engine.add_model(Arc::new(GreenModel::new(&mesh, green(stiffness)?)));
         }
     }
+    if let Some(regime) = config.regime {
+        let chosen = engine
+            .default_to_most_accurate(regime)
+            .with_context(|| format!("--regime {regime}: no model to answer requests that name none"))?;
+        info!(
+            model = chosen,
+            "requests naming no model get the most accurate {regime} model"
+        );
+    }
     Ok(engine)
 }
 

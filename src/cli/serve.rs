@@ -8,7 +8,7 @@ use std::sync::Arc;
 
 use anyhow::Context;
 use nak::cpu_idle::PollingIdle;
-use nak::engine::Engine;
+use nak::engine::{Engine, Regime};
 use nak::record::{Payload, Recorder};
 use nak::serve::{self, ServeConfig};
 use nak::wire::read_token;
@@ -26,6 +26,13 @@ pub struct ServeArgs {
     /// [default: the embedded phantom liver].
     #[arg(long)]
     mesh: Option<PathBuf>,
+    /// The regime the organ is served in (nonlinear: hanging under gravity from its fixed area, the
+    /// preloaded state surgery sees): a request naming no model gets the most accurate model of that
+    /// regime served here (linear: green-linear when served; otherwise the highest held-out DCM in
+    /// the models' manifests), and the server does not start when there is none [default: none; such
+    /// a request gets the Kelvinlet].
+    #[arg(long, value_enum)]
+    regime: Option<Regime>,
     /// Address to listen on [default: 127.0.0.1:50051; port 0 picks a free port].
     #[arg(long)]
     listen: Option<SocketAddr>,
@@ -167,6 +174,7 @@ fn serve_config(args: ServeArgs) -> anyhow::Result<ServeConfig> {
         None => ServeConfig::default(),
     };
     config.mesh = args.mesh.or(config.mesh);
+    config.regime = args.regime.or(config.regime);
     config.listen = args.listen.unwrap_or(config.listen);
     config.metrics_listen = args.metrics_listen.or(config.metrics_listen);
     config.health_listen = args.health_listen.or(config.health_listen);

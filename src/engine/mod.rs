@@ -3,6 +3,7 @@
 
 pub mod grasp;
 pub mod model;
+pub mod regime;
 
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex};
@@ -13,6 +14,7 @@ pub use model::{
     Answer, DeformationModel, Forces, KelvinletModel, ModelError, ModelInfo, ModelKind, StageTiming, Target,
     VOLUMETRIC_LAW_KEY,
 };
+pub use regime::Regime;
 
 use crate::mesh::TetMesh;
 use crate::prior::gpu::GpuError;
@@ -72,7 +74,7 @@ pub enum Selection {
 /// One prediction request, independent of the wire format.
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct Request {
-    /// Empty means [`KelvinletModel::NAME`].
+    /// Empty means the engine's default model ([`Engine::default_model`]).
     pub model: String,
     /// Name or content hash of the mesh the client expects; empty means the served mesh.
     pub mesh: String,
@@ -138,6 +140,8 @@ pub struct Engine {
     mesh: Arc<TetMesh>,
     limits: Limits,
     models: BTreeMap<String, Arc<dyn DeformationModel>>,
+    /// The model a request that names none gets.
+    default_model: String,
     refused: Vec<RefusedModel>,
     all_nodes: NodeCloud,
     surface_nodes: NodeCloud,
@@ -152,6 +156,7 @@ impl Engine {
         let kelvinlet: Arc<dyn DeformationModel> = Arc::new(KelvinletModel::new(&mesh));
         Self {
             models: BTreeMap::from([(KelvinletModel::NAME.to_owned(), kelvinlet)]),
+            default_model: KelvinletModel::NAME.to_owned(),
             refused: Vec::new(),
             mesh,
             limits,
@@ -208,6 +213,46 @@ impl Engine {
         self.models.values().map(|m| m.info())
     }
 
+    /// The model a request naming none gets: the Kelvinlet unless [`Self::default_to_most_accurate`]
+    /// chose another.
+    pub fn default_model(&self) -> &str {
+        &self.default_model
+    }
+
+    /// The model that answers a request for `requested` (empty: the default).
+    pub fn resolve_model_name<'a>(&'a self, requested: &'a str) -> &'a str {
+        if requested.is_empty() {
+            &self.default_model
+        } else {
+            requested
+        }
+    }
+
+    /// Makes the most accurate model of `regime` served now ([`regime::most_accurate`]) the default,
+    /// and returns its name; refused, with what is served, when no model of the regime qualifies.
+    pub fn default_to_most_accurate(&mut self, regime: Regime) -> Result<&str, EngineError> {
+        let best = regime::most_accurate(self.models(), regime).map(|info| info.name.clone());
+        let Some(best) = best else {
+            let served: Vec<String> = self
+                .models()
+                .map(|m| match m.regime.as_str() {
+                    "" => m.name.clone(),
+                    regime => format!("{} ({regime})", m.name),
+                })
+                .collect();
+            return Err(EngineError::NotFound(format!(
+                "no {regime} model with a held-out DCM in its manifest is served{}; served: {}",
+                match regime {
+                    Regime::Linear => " and green-linear is not",
+                    Regime::Nonlinear => "",
+                },
+                served.join(", ")
+            )));
+        };
+        self.default_model = best;
+        Ok(&self.default_model)
+    }
+
     /// Notes a model that could not be loaded; the others are served.
     pub fn refuse_model(&mut self, refused: RefusedModel) {
         self.refused.push(refused);
@@ -237,11 +282,7 @@ impl Engine {
                 request.mesh, self.mesh.config.name, self.mesh.content_hash
             )));
         }
-        let name = if request.model.is_empty() {
-            KelvinletModel::NAME
-        } else {
-            request.model.as_str()
-        };
+        let name = self.resolve_model_name(&request.model);
         let model = self.models.get(name).ok_or_else(|| {
             EngineError::NotFound(format!(
                 "unknown model {name:?}; available: {}",

@@ -20,7 +20,7 @@ use tokio::net::TcpListener;
 use tonic::Code;
 
 use super::admission::Admission;
-use crate::engine::{Engine, KelvinletModel, ModelKind};
+use crate::engine::{Engine, ModelKind};
 use crate::proto::v1::Timing;
 use crate::record::Recorder;
 
@@ -141,10 +141,10 @@ impl Metrics {
         }
     }
 
-    /// Counts one answer (or refusal) to a request for `model`, with its stage times when answered.
+    /// Counts one answer (or refusal) by `model` (the one that answered: a request naming none is
+    /// counted under the engine's default), with its stage times when answered.
     pub fn observe(&self, model: &str, code: Code, timing: Option<&Timing>) {
-        let name = if model.is_empty() { KelvinletModel::NAME } else { model };
-        let series = self.models.get(name);
+        let series = self.models.get(model);
         let labels = RequestLabels {
             model: series.map_or(&self.unknown, |s| &s.label).clone(),
             code: self.codes[code as usize].clone(),

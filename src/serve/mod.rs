@@ -23,7 +23,7 @@ use tracing::{info, warn};
 pub use priority::{DEFAULT_COMPUTE_NICENESS, favour_runtime_thread, start_compute_pool};
 pub use service::DeformationService;
 
-use crate::engine::{Engine, Limits};
+use crate::engine::{Engine, Limits, Regime};
 use crate::prior::PriorBackend;
 use crate::proto::v1::FILE_DESCRIPTOR_SET;
 use crate::proto::v1::deformation_server::DeformationServer;
@@ -40,6 +40,9 @@ use tower::Layer;
 pub struct ServeConfig {
     /// `--mesh`: a model directory or an .msh file; absent: the embedded phantom liver.
     pub mesh: Option<PathBuf>,
+    /// `--regime`: what a request naming no model gets, the most accurate model of this regime
+    /// served ([`Engine::default_to_most_accurate`]); absent: the Kelvinlet.
+    pub regime: Option<Regime>,
     /// Directories whose subdirectories hold models (`manifest.toml` + `model.onnx`); a `--mesh`
     /// directory is searched too.
     pub models: Vec<PathBuf>,
@@ -99,6 +102,7 @@ impl Default for ServeConfig {
         let limits = Limits::default();
         Self {
             mesh: None,
+            regime: None,
             models: Vec::new(),
             ort_dylib: None,
             green_linear: false,

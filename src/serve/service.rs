@@ -63,8 +63,13 @@ impl DeformationService {
         let received = SystemTime::now();
         let answer = self.answer(&message, deadline, admitted).await;
         match &answer {
-            Ok(response) => self.metrics.observe(&message.model, Code::Ok, response.timing.as_ref()),
-            Err(status) => self.metrics.observe(&message.model, status.code(), None),
+            Ok(response) => self
+                .metrics
+                .observe(&response.model, Code::Ok, response.timing.as_ref()),
+            Err(status) => {
+                let model = self.engine.resolve_model_name(&message.model);
+                self.metrics.observe(model, status.code(), None)
+            }
         }
         if let Some(recorder) = &self.recorder {
             recorder.record(Exchange {
@@ -231,7 +236,10 @@ impl Deformation for DeformationService {
         _request: Request<pb::ListModelsRequest>,
     ) -> Result<Response<pb::ListModelsResponse>, Status> {
         let models = self.engine.models().map(convert::model_info).collect();
-        Ok(Response::new(pb::ListModelsResponse { models }))
+        Ok(Response::new(pb::ListModelsResponse {
+            models,
+            default_model: self.engine.default_model().to_owned(),
+        }))
     }
 
     async fn predict(&self, mut request: Request<pb::PredictRequest>) -> Result<Response<pb::PredictResponse>, Status> {

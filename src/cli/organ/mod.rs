@@ -18,6 +18,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::Context;
+use nak::engine::Regime;
 use nak::fem::Stiffness;
 
 use crate::cli::engine::{default_cache_dir, load_green, load_mesh};
@@ -52,8 +53,8 @@ pub struct OrganNewArgs {
     no_network: bool,
     /// The regime of the network's data: linear (seconds) or nonlinear (hours on two cores; see
     /// docs/your-own-organ.md for more machines).
-    #[arg(long, value_enum, default_value_t = network::Regime::Linear)]
-    regime: network::Regime,
+    #[arg(long, value_enum, default_value_t = Regime::Linear)]
+    regime: Regime,
     /// Training samples, split evenly between one and two graspers [default: the paper's 10,400].
     #[arg(long, value_name = "N")]
     samples: Option<usize>,

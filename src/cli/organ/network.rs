@@ -9,6 +9,7 @@ use std::process::Command;
 use std::time::Instant;
 
 use anyhow::{Context, bail};
+use nak::engine::Regime;
 use nak::mesh::TetMesh;
 use nak::model::Manifest;
 
@@ -23,25 +24,11 @@ const PAPER_SAMPLES: usize = 10_400;
 /// The inputs a trained network was made from, beside it and beside its checkpoints.
 const NETWORK_STAMP: &str = ".nak-organ-network";
 
-#[derive(Clone, Copy, Debug, clap::ValueEnum)]
-pub enum Regime {
-    Linear,
-    Nonlinear,
-}
-
-impl Regime {
-    fn name(self) -> &'static str {
-        match self {
-            Regime::Linear => "linear",
-            Regime::Nonlinear => "nonlinear",
-        }
-    }
-
-    fn default_config(self) -> &'static str {
-        match self {
-            Regime::Linear => "training/configs/pod-res.toml",
-            Regime::Nonlinear => "training/configs/nonlinear/pod-res-gt-nl.toml",
-        }
+/// The training configuration `nak organ new` uses for `regime` when none is given.
+fn default_config(regime: Regime) -> &'static str {
+    match regime {
+        Regime::Linear => "training/configs/pod-res.toml",
+        Regime::Nonlinear => "training/configs/nonlinear/pod-res-gt-nl.toml",
     }
 }
 
@@ -60,7 +47,7 @@ pub fn make(args: &OrganNewArgs, mesh: &TetMesh, cache: &Path, stages: usize) ->
     let config = args
         .config
         .clone()
-        .unwrap_or_else(|| args.regime.default_config().into());
+        .unwrap_or_else(|| default_config(args.regime).into());
     let name = config_name(&config)?;
     let model_dir = args.out.join(&name);
     let stamp = Stamp::new(

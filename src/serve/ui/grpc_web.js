@@ -165,9 +165,12 @@ function decodeMesh(bytes) {
 
 const MODEL_KINDS = { 1: "prior", 2: "exact", 3: "neural" };
 
+// ListModelsResponse: the models, and the one a request naming none gets.
 function decodeModels(bytes) {
   const models = [];
+  let defaultModel = "";
   readFields(bytes, (field, _, value) => {
+    if (field === 2) defaultModel = text(value);
     if (field !== 1) return;
     const model = { name: "", kind: "", regime: "", metadata: {} };
     readFields(value, (f, __, v) => {
@@ -183,7 +186,7 @@ function decodeModels(bytes) {
     });
     models.push(model);
   });
-  return models;
+  return { models, defaultModel };
 }
 
 const VEC3_FIELDS = new Set([1, 2, 3]);

@@ -43,7 +43,7 @@ let camera;
 let renderer;
 
 async function start() {
-  const [mesh, models] = await Promise.all([client.getMesh(), client.listModels()]);
+  const [mesh, { models, defaultModel }] = await Promise.all([client.getMesh(), client.listModels()]);
   surface = new Surface(mesh);
   camera = new OrbitCamera(surface.center, surface.radius);
   renderer = new Renderer($("view"), surface);
@@ -58,12 +58,15 @@ async function start() {
     option.textContent = [model.name, model.kind, model.regime, score].filter(Boolean).join(" · ");
     picker.append(option);
   }
-  // The most accurate model on held-out data first; when none has a score (a new organ, served with
-  // its Green's functions but no network yet), an exact model before the Kelvinlet prior.
+  // The server's own default when it chose one (`nak serve --regime`: the most accurate model of the
+  // regime its organ is in); else the most accurate model on held-out data; when none has a score (a
+  // new organ, served with its Green's functions but no network yet), an exact model before the
+  // Kelvinlet prior.
   const scored = models.filter((m) => Number.isFinite(testDcm(m)));
   const best = scored.sort((a, b) => testDcm(b) - testDcm(a))[0];
   const fallback = models.find((m) => m.kind === "exact") ?? models.find((m) => m.name === "kelvinlet");
-  state.model = best?.name ?? fallback?.name ?? models[0]?.name ?? "";
+  const chosen = defaultModel && defaultModel !== "kelvinlet" ? defaultModel : undefined;
+  state.model = chosen ?? best?.name ?? fallback?.name ?? models[0]?.name ?? "";
   picker.value = state.model;
   picker.addEventListener("change", () => {
     state.model = picker.value;

@@ -38,11 +38,12 @@ class AsyncClient(Session):
     async def predict(
         self,
         grasps: Sequence[Grasp],
-        model: str = "kelvinlet",
+        model: str = "",
         select: NodeChoice = Selection.ALL,
         timeout: float | None = None,
     ) -> Prediction:
-        """Displacements for `grasps`; refusals raise grpc.aio.AioRpcError with the server's code and message."""
+        """Displacements for `grasps` by `model` (empty: the server's default, the Kelvinlet unless it runs
+        with --regime); refusals raise grpc.aio.AioRpcError with the server's code and message."""
         message = self._next(grasps, model, select)
         reply = await self._stub.Predict(message, timeout=timeout, metadata=self._metadata)
         return Prediction.from_message(reply)
@@ -50,7 +51,7 @@ class AsyncClient(Session):
     async def stream(
         self,
         requests: AsyncIterable[Sequence[Grasp]] | Iterable[Sequence[Grasp]],
-        model: str = "kelvinlet",
+        model: str = "",
         select: NodeChoice = Selection.ALL,
     ) -> AsyncIterator[Prediction | StreamError]:
         """One answer per set of grasps, in order, over one stream; a refused message is answered with a

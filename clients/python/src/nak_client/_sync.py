@@ -38,16 +38,17 @@ class Client(Session):
     def predict(
         self,
         grasps: Sequence[Grasp],
-        model: str = "kelvinlet",
+        model: str = "",
         select: NodeChoice = Selection.ALL,
         timeout: float | None = None,
     ) -> Prediction:
-        """Displacements for `grasps`; refusals raise grpc.RpcError with the server's code and message."""
+        """Displacements for `grasps` by `model` (empty: the server's default, the Kelvinlet unless it runs
+        with --regime); refusals raise grpc.RpcError with the server's code and message."""
         message = self._next(grasps, model, select)
         return Prediction.from_message(self._stub.Predict(message, timeout=timeout, metadata=self._metadata))
 
     def stream(
-        self, requests: Iterable[Sequence[Grasp]], model: str = "kelvinlet", select: NodeChoice = Selection.ALL
+        self, requests: Iterable[Sequence[Grasp]], model: str = "", select: NodeChoice = Selection.ALL
     ) -> Iterator[Prediction | StreamError]:
         """One answer per set of grasps, in order, over one stream; a refused message is answered with a
         StreamError and the stream goes on."""
