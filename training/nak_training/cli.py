@@ -55,7 +55,9 @@ def main(argv: list[str] | None = None) -> int:
         )
     report = commands.add_parser("report", help="the results table and the accuracy-latency figure")
     report.add_argument("--data", type=Path, required=True, help="the linear dataset the models were scored on")
-    report.add_argument("--nonlinear-data", type=Path, help="the nonlinear dataset (Table 3 and its points)")
+    report.add_argument(
+        "--nonlinear-data", type=Path, help="the held-out nonlinear set the nonlinear networks are scored on (Table 3)"
+    )
     report.add_argument("--models", type=Path, nargs="+", default=[DEFAULT_MODELS], help="model directories")
     report.add_argument("--nak", type=Path, default=DEFAULT_NAK)
     report.add_argument("--mesh", type=Path, default=DEFAULT_MESH)
