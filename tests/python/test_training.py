@@ -193,6 +193,42 @@ def test_an_interrupted_run_resumes_to_the_same_weights(coarse_data: Path, tmp_p
         Trainer(other, dataset, resumed, log=quiet)
 
 
+def test_an_averaged_run_keeps_and_resumes_the_moving_average_of_its_weights(coarse_data: Path, tmp_path: Path) -> None:
+    dataset = open_dataset(coarse_data)
+
+    def train(name: str, val_every: int, log: Any = quiet) -> Path:
+        run_dir = tmp_path / name
+        run_dir.mkdir(exist_ok=True)
+        Trainer(parse_config(tiny_config(ema=0.5, val_every=val_every), "tiny"), dataset, run_dir, log=log).run()
+        return run_dir
+
+    # Validated once, at the end: what is kept is the average, not the last weights.
+    once = train("once", 6)
+    checkpoint = torch.load(once / "checkpoint.pt", weights_only=False)
+    kept = torch.load(once / "best.pt", weights_only=True)
+    assert kept.keys() == checkpoint["ema"].keys()
+    assert all(torch.equal(kept[k], checkpoint["ema"][k]) for k in kept)
+    assert any(not torch.equal(checkpoint["ema"][k], checkpoint["model"][k]) for k in kept)
+
+    class Interrupt(Exception):
+        pass
+
+    def stop_at_the_first_checkpoint(message: str) -> None:
+        if "val DCM" in message:
+            raise Interrupt
+
+    straight = train("straight", 3)
+    with pytest.raises(Interrupt):
+        train("resumed", 3, stop_at_the_first_checkpoint)
+    resumed = train("resumed", 3)
+    a = torch.load(straight / "checkpoint.pt", weights_only=False)["ema"]
+    b = torch.load(resumed / "checkpoint.pt", weights_only=False)["ema"]
+    for key in a:
+        assert torch.allclose(a[key], b[key], atol=1e-6), key
+    with pytest.raises(TrainingInputError, match="ema = 1.0"):
+        parse_config(tiny_config(ema=1.0), "tiny")
+
+
 def test_a_run_is_not_resumed_on_data_of_another_volumetric_law(coarse_data: Path, tmp_path: Path) -> None:
     def relabelled(law: str) -> Path:
         """The coarse set as if solved under `law`: the labels are what training compares."""

@@ -67,6 +67,9 @@ class TrainConfig:
     force_mode: str = "direct"
     # The force head's width: its cost per interaction point.
     force_width: int = 64
+    # Decay of the exponential moving average of the weights that is validated, kept and exported
+    # (e.g. 0.999: about the last thousand steps); 0: the weights as trained.
+    ema: float = 0.0
     seed: int = 0
     threads: int = 2
     description: str = ""
@@ -148,6 +151,8 @@ def parse_config(values: dict[str, Any], origin: str) -> TrainConfig:
         )
     if not config.force_weight >= 0:
         raise TrainingInputError(origin, f"force_weight = {config.force_weight!r}: must be 0 or more")
+    if not 0.0 <= config.ema < 1.0:
+        raise TrainingInputError(origin, f"ema = {config.ema!r}: must be in [0, 1) (0: no averaging)")
     if config.pod_samples < 0:
         raise TrainingInputError(origin, f"pod_samples = {config.pod_samples!r}: must be 0 (all) or more")
     return config

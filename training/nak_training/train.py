@@ -149,6 +149,10 @@ class Run:
         """Takes `model` for training and resumes from the run's checkpoint if there is one."""
         self.model = model
         self.optimizer = torch.optim.AdamW(model.parameters(), lr=self.config.lr, weight_decay=self.config.weight_decay)
+        # With `ema`, the moving average of the weights is what is validated, kept and exported.
+        self.ema: dict[str, torch.Tensor] | None = (
+            {k: v.detach().clone() for k, v in model.state_dict().items()} if self.config.ema else None
+        )
         self.step = 0
         self.best = -math.inf
         self.elapsed = 0.0
@@ -165,7 +169,33 @@ class Run:
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()
+        if self.ema is not None:
+            self._average()
         return float(loss.detach())
+
+    @torch.no_grad()
+    def _average(self) -> None:
+        """Moves the exponential moving average of the weights (Polyak averaging) towards this step's:
+        an average over the last ~1/(1 − ema) steps, which damps the noise of small batches that a
+        network fitting few samples otherwise ends on. Early steps weigh more (the usual warm-up)."""
+        assert self.ema is not None
+        decay = min(self.config.ema, (1 + self.step) / (10 + self.step))
+        for name, value in self.model.state_dict().items():
+            if value.is_floating_point():
+                self.ema[name].lerp_(value, 1.0 - decay)
+            else:
+                self.ema[name].copy_(value)
+
+    def _score(self) -> float:
+        """The val DCM of the weights that would be kept: the moving average with `ema`, else the model's."""
+        if self.ema is None:
+            return self.validate()
+        trained = {k: v.clone() for k, v in self.model.state_dict().items()}
+        self.model.load_state_dict(self.ema)
+        try:
+            return self.validate()
+        finally:
+            self.model.load_state_dict(trained)
 
     def validate(self) -> float:
         raise NotImplementedError
@@ -211,6 +241,8 @@ class Run:
                 f"solved under {self.dataset.volumetric_law}: data of two laws is not mixed (use a new run directory)",
             )
         self.model.load_state_dict(checkpoint["model"])
+        if self.ema is not None:
+            self.ema = checkpoint["ema"]
         self.optimizer.load_state_dict(checkpoint["optimizer"])
         self.generator.set_state(checkpoint["generator"])
         self.step, self.best, self.elapsed = checkpoint["step"], checkpoint["best"], checkpoint["elapsed"]
@@ -248,11 +280,11 @@ class Run:
                 )
                 window.clear()
             if self.step % c.val_every == 0 or self.step == c.steps:
-                score = self.validate()
+                score = self._score()
                 improved = score > self.best
                 if improved:
                     self.best = score
-                    torch.save(self.model.state_dict(), self.run_dir / "best.pt")
+                    torch.save(self.model.state_dict() if self.ema is None else self.ema, self.run_dir / "best.pt")
                 self.history.append({"step": self.step, "val_dcm": score})
                 self.elapsed = time.monotonic() - started
                 self._checkpoint()
@@ -291,6 +323,7 @@ class Run:
             "data": self._data_description(),
             "volumetric_law": self.dataset.volumetric_law,
             "model": self.model.state_dict(),
+            "ema": self.ema,
             "optimizer": self.optimizer.state_dict(),
             "generator": self.generator.get_state(),
             "step": self.step,
