@@ -29,7 +29,8 @@ from nak_training.export import export
 from nak_training.force_report import write_force_report
 from nak_training.kelvinlet import Prior, pad_points
 from nak_training.models import Grasped, MeshGNN, build
-from nak_training.reduced_train import ReducedTrainer
+from nak_training.reduced import Ensemble
+from nak_training.reduced_train import ReducedTrainer, load_reduced
 from nak_training.served import Nak
 from nak_training.train import Trainer
 
@@ -354,9 +355,10 @@ def test_training_beats_the_untrained_network_through_nak_eval(
 @pytest.fixture(scope="module")
 def reduced(coarse_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Reduced-basis networks from the coarse dataset: a trained POD +Res in three shipping forms (f32
-    and f16 basis files, folded graph), its untrained twin, and a DeepONet +Reg with the pooled encoder."""
+    and f16 basis files, folded graph), its untrained twin, an ensemble of three, and a DeepONet +Reg
+    with the pooled encoder."""
     dataset = open_dataset(coarse_data)
-    runs = tmp_path_factory.mktemp("reduced-runs")
+    runs = tmp_path_factory.mktemp("reduced-runs", numbered=False)
     models = tmp_path_factory.mktemp("reduced-models")
     pod = dict(architecture="pod", modes=8, width=32, steps=200, batch=8, lr=3e-3, val_every=100)
     variants: list[dict[str, Any]] = [
@@ -364,6 +366,7 @@ def reduced(coarse_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path
         dict(name="pod-f16", basis_precision="f16", **pod),
         dict(name="pod-graph", form="graph", **pod),
         dict(name="pod-untrained", **{**pod, "steps": 1, "lr": 1e-12}),
+        dict(name="pod-ensemble", members=3, basis_precision="f32", **pod),
         dict(
             name="deeponet-reg",
             architecture="deeponet",
@@ -402,27 +405,48 @@ def test_reduced_networks_are_served_as_their_graph_and_basis_compute_them(
         ]
         served = {
             name: np.frombuffer(stub.Predict(pb.PredictRequest(model=name, grasps=grasps)).displacements, "<f4")
-            for name in ("pod-trained", "pod-f16", "pod-graph", "deeponet-reg")
+            for name in ("pod-trained", "pod-f16", "pod-graph", "pod-ensemble", "deeponet-reg")
         }
 
     positions = dataset.mesh.positions
     interaction = np.concatenate([positions[sample.nodes].numpy(), sample.displacements], axis=1)[None].astype("f4")
-    session = onnxruntime.InferenceSession(str(reduced / "pod-trained" / "model.onnx"))
-    (g,) = session.run(["coefficients"], {"interaction": interaction})
-    basis = load_file(str(reduced / "pod-trained" / "basis.safetensors"))["basis"]
     _, points, u, mask = pad_points(
         positions, [torch.from_numpy(sample.nodes)], [torch.from_numpy(sample.displacements)]
     )
     prior = Prior(dataset.mesh.prior[0], 0.02, dataset.mesh.prior[2])
-    expected = (basis @ g[0]).reshape(-1) + prior.evaluate(positions, points, u, mask)[0].numpy().reshape(-1)
+    prior_field = prior.evaluate(positions, points, u, mask)[0].numpy().reshape(-1)
+
+    def expected(name: str) -> np.ndarray:
+        """The graph's coefficients (onnxruntime) times the basis file, plus the prior."""
+        session = onnxruntime.InferenceSession(str(reduced / name / "model.onnx"))
+        (g,) = session.run(["coefficients"], {"interaction": interaction})
+        basis = load_file(str(reduced / name / "basis.safetensors"))["basis"]
+        return np.asarray((basis @ g[0]).reshape(-1) + prior_field)
 
     def relative(a: np.ndarray, b: np.ndarray) -> float:
         return float(np.linalg.norm(a - b) / np.linalg.norm(b))
 
-    assert relative(served["pod-trained"], expected) < 1e-5
-    assert relative(served["pod-graph"], expected) < 1e-5
-    assert 0 < relative(served["pod-f16"], expected) < 1e-3  # f16 basis: 2⁻¹¹ relative per value
+    assert relative(served["pod-trained"], expected("pod-trained")) < 1e-5
+    assert relative(served["pod-graph"], expected("pod-trained")) < 1e-5
+    assert 0 < relative(served["pod-f16"], expected("pod-trained")) < 1e-3  # f16 basis: 2⁻¹¹ relative per value
+    assert relative(served["pod-ensemble"], expected("pod-ensemble")) < 1e-5
     assert np.isfinite(served["deeponet-reg"]).all()
+
+
+def test_an_ensemble_answers_the_mean_of_its_members_which_differ(coarse_data: Path, reduced: Path) -> None:
+    config = load_config(reduced / "pod-ensemble" / "config.toml")
+    run = reduced.parent / "reduced-runs" / "pod-ensemble"
+    net, _ = load_reduced(run, config)
+    assert isinstance(net.encoder, Ensemble) and len(net.encoder.encoders) == 3
+    sample = open_dataset(coarse_data).load("test").samples[0]
+    positions = open_dataset(coarse_data).mesh.positions
+    interaction = torch.cat([positions[sample.nodes].float(), torch.from_numpy(sample.displacements).float()], 1)[None]
+    with torch.no_grad():
+        each = [member(interaction) for member in net.encoder.encoders]
+        assert torch.allclose(net.encoder(interaction), torch.stack(each).mean(0), atol=1e-6)
+    assert float((each[0] - each[1]).norm()) > 1e-3 * float(each[0].norm())  # own weights, own batches
+    with pytest.raises(TrainingInputError, match="members > 1"):
+        parse_config(tiny_config(members=2), "tiny")  # PointNet: no ensembles
 
 
 def test_reduced_training_beats_the_untrained_network_through_nak_eval(

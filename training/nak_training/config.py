@@ -67,6 +67,9 @@ class TrainConfig:
     force_mode: str = "direct"
     # The force head's width: its cost per interaction point.
     force_width: int = 64
+    # POD networks: an ensemble of this many encoders, each trained on its own batches, served as the
+    # mean of their coefficients in one graph (1: one encoder).
+    members: int = 1
     # Decay of the exponential moving average of the weights that is validated, kept and exported
     # (e.g. 0.999: about the last thousand steps); 0: the weights as trained.
     ema: float = 0.0
@@ -135,6 +138,7 @@ def parse_config(values: dict[str, Any], origin: str) -> TrainConfig:
         "modes",
         "width",
         "force_width",
+        "members",
     ):
         if int(getattr(config, key)) < 1:
             raise TrainingInputError(origin, f"{key} = {getattr(config, key)!r}: must be at least 1")
@@ -151,6 +155,10 @@ def parse_config(values: dict[str, Any], origin: str) -> TrainConfig:
         )
     if not config.force_weight >= 0:
         raise TrainingInputError(origin, f"force_weight = {config.force_weight!r}: must be 0 or more")
+    if config.members > 1 and (config.architecture != "pod" or config.method == "reg" or config.forces):
+        raise TrainingInputError(
+            origin, 'members > 1 (an ensemble) needs architecture = "pod", method base or res, and no forces'
+        )
     if not 0.0 <= config.ema < 1.0:
         raise TrainingInputError(origin, f"ema = {config.ema!r}: must be in [0, 1) (0: no averaging)")
     if config.pod_samples < 0:

@@ -25,7 +25,7 @@ points of each grasp (docs/design.md §7).
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, cast
 
 import torch
 from torch import nn
@@ -139,6 +139,33 @@ class SetEncoder(Encoder):
         return (linear + self.head(summary)) * self.g_scale, f, summary
 
 
+class Ensemble(Encoder):
+    """Several encoders of one kind, each trained on its own batches from its own initial weights; g is
+    the mean of theirs, in one graph. Where a network fits its few samples closely (the nonlinear
+    regime), the members' errors on new grasps partly cancel in the mean."""
+
+    def __init__(self, members: list[Encoder]) -> None:
+        super().__init__(members[0].modes)
+        self.members = nn.ModuleList(members)
+
+    @property
+    def encoders(self) -> list[Encoder]:
+        return [cast(Encoder, member) for member in self.members]
+
+    def set_statistics(self, **stats: torch.Tensor) -> None:
+        super().set_statistics(**stats)
+        for member in self.encoders:
+            member.set_statistics(**stats)
+
+    def encode(
+        self, interaction: torch.Tensor, mask: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The members' mean g, with the first member's normalized points and summary."""
+        outputs = [member.encode(interaction, mask) for member in self.encoders]
+        g = torch.stack([g for g, _, _ in outputs]).mean(0)
+        return g, outputs[0][1], outputs[0][2]
+
+
 class ForceHead(nn.Module):
     """The force (N) on each interaction point: its grasp's share of (A_k û_k + c_k) · f_scale, with
     A_k [3, 3] and c_k from an MLP over the point's normalized input and the set's summary (its first
@@ -192,11 +219,21 @@ class ReducedNet(nn.Module):
     """The encoder, and the trunk for a DeepONet (a POD's basis is data, not parameters)."""
 
     def __init__(
-        self, architecture: str, modes: int, width: int, encoder: str = "linear", force_width: int | None = None
+        self,
+        architecture: str,
+        modes: int,
+        width: int,
+        encoder: str = "linear",
+        force_width: int | None = None,
+        members: int = 1,
     ) -> None:
-        """`force_width`: the force head's width (None: no force head)."""
+        """`force_width`: the force head's width (None: no force head); `members`: encoders averaged."""
         super().__init__()
-        self.encoder: Encoder = SetEncoder(modes, width) if encoder == "linear" else PooledEncoder(modes, width)
+
+        def one() -> Encoder:
+            return SetEncoder(modes, width) if encoder == "linear" else PooledEncoder(modes, width)
+
+        self.encoder: Encoder = one() if members == 1 else Ensemble([one() for _ in range(members)])
         self.trunk = Trunk(modes, width) if architecture == "deeponet" else None
         self.forces = ForceHead(width, force_width) if force_width is not None else None
 

@@ -21,7 +21,7 @@ from .config import TrainConfig
 from .dataset import Dataset, Split
 from .errors import TrainingInputError
 from .kelvinlet import pad_points
-from .reduced import ReducedNet, ceiling, project, weighted_basis
+from .reduced import Ensemble, ReducedNet, ceiling, project, weighted_basis
 from .served import Nak, served_grasp_forces
 from .train import Run
 
@@ -96,7 +96,7 @@ class ReducedTrainer(Run):
         self.mean_norm = self.train_norm.mean()
         self.train_points, self.train_mask = interaction_batch(self.mesh.positions, self.train)
         self.val_points, self.val_mask = interaction_batch(self.mesh.positions, self.val)
-        net = ReducedNet(config.architecture, config.modes, config.width, config.encoder, config.head_width)
+        net = reduced_net(config)
         self.train_forces = self._grasp_forces(self.train, "train", self.train_points.shape[1])
         self.val_forces = self._grasp_forces(self.val, "val", self.val_points.shape[1])
         if net.forces is not None and self.train_forces is not None:
@@ -171,6 +171,8 @@ class ReducedTrainer(Run):
 
     def _step(self) -> float:
         c = self.config
+        if isinstance(self.model.encoder, Ensemble):
+            return self._ensemble_step(self.model.encoder)
         picks = torch.randint(len(self.train), (c.batch,), generator=self.generator)
         g, forces = self.model.encode(self.train_points[picks], self.train_mask[picks])
         if self.basis is not None:
@@ -186,6 +188,16 @@ class ReducedTrainer(Run):
         if forces is not None and self.train_forces is not None:
             loss = loss + c.force_weight * self.train_forces.relative_errors(forces, picks).mean().float()
         return self._descend(loss)
+
+    def _ensemble_step(self, ensemble: Ensemble) -> float:
+        """Each member on its own batch, towards the POD coefficients (the config allows no other)."""
+        p = self.train_projection
+        losses = []
+        for member in ensemble.encoders:
+            picks = torch.randint(len(self.train), (self.config.batch,), generator=self.generator)
+            g = member(self.train_points[picks], self.train_mask[picks])
+            losses.append(self._coefficient_error(g, p["g"][picks], p["missed"][picks], self.train_norm[picks]).mean())
+        return self._descend(torch.stack(losses).mean())
 
     @staticmethod
     def _coefficient_error(g: torch.Tensor, target: torch.Tensor, missed: Any, norm: torch.Tensor) -> torch.Tensor:
@@ -247,12 +259,19 @@ class ReducedTrainer(Run):
         return float(100.0 * (1.0 - errors.mean()))
 
 
+def reduced_net(config: TrainConfig) -> ReducedNet:
+    """The untrained network `config` describes."""
+    return ReducedNet(
+        config.architecture, config.modes, config.width, config.encoder, config.head_width, config.members
+    )
+
+
 def load_reduced(run_dir: Path, config: TrainConfig) -> tuple[ReducedNet, torch.Tensor | None]:
     """The best network of a finished run, and its POD basis (None for a DeepONet)."""
     path = run_dir / "best.pt"
     if not path.is_file():
         raise TrainingInputError(path, "missing: train the model first")
-    net = ReducedNet(config.architecture, config.modes, config.width, config.encoder, config.head_width)
+    net = reduced_net(config)
     net.load_state_dict(torch.load(path, weights_only=True))
     net.eval()
     if net.trunk is not None:
