@@ -49,6 +49,10 @@ pub struct Summary {
     pub samples: usize,
     /// Volume-weighted DCM, percent.
     pub dcm: f64,
+    /// Its standard error, percentage points: the sample standard deviation of the per-sample errors
+    /// over √n, how far another draw of as many samples would move it (about one in three draws by
+    /// more); `None` for one sample.
+    pub dcm_standard_error: Option<f64>,
     /// Nodal DCM, percent.
     pub dcm_nodal: f64,
     /// The paper's code form, percent: 1 − Σ‖e_c‖ / Σ‖u_c‖ over samples and axes.
@@ -67,9 +71,11 @@ pub fn summarize(errors: &[SampleError]) -> Option<Summary> {
     volume.sort_by(f64::total_cmp);
     let mean = volume.iter().sum::<f64>() / n;
     let median = median_of_sorted(&volume);
+    let variance = volume.iter().map(|e| (e - mean).powi(2)).sum::<f64>() / (n - 1.0);
     Some(Summary {
         samples: errors.len(),
         dcm: 100.0 * (1.0 - mean),
+        dcm_standard_error: (errors.len() > 1).then(|| 100.0 * (variance / n).sqrt()),
         dcm_nodal: 100.0 * (1.0 - errors.iter().map(|e| e.nodal).sum::<f64>() / n),
         dcm_code: 100.0
             * (1.0
@@ -106,6 +112,9 @@ mod tests {
         let s = summarize(&[exact, zero]).unwrap();
         assert!((s.dcm - 50.0).abs() < 1e-9 && s.max_error == 1.0 && s.median_error == 0.5);
         assert!((s.dcm_code - 50.0).abs() < 1e-9, "{}", s.dcm_code);
+        // Errors 0 and 1: sample variance 0.5, standard error √(0.5 / 2) = 0.5.
+        assert!((s.dcm_standard_error.unwrap() - 50.0).abs() < 1e-9);
+        assert_eq!(summarize(&[exact]).unwrap().dcm_standard_error, None);
     }
 
     #[test]

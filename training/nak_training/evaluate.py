@@ -40,6 +40,8 @@ def metrics_of(report: dict[str, Any]) -> dict[str, Any]:
     metrics: dict[str, Any] = {"split": report["split"], "scored_on_seed": report.get("seed")}
     for subset, s in report["subsets"].items():
         metrics[f"dcm_{subset}"] = round(s["dcm"], 3)
+        if s.get("dcm_standard_error") is not None:
+            metrics[f"dcm_se_{subset}"] = round(s["dcm_standard_error"], 3)
         metrics[f"dcm_nodal_{subset}"] = round(s["dcm_nodal"], 3)
         metrics[f"dcm_code_{subset}"] = round(s["dcm_code"], 3)
         metrics[f"samples_{subset}"] = s["samples"]
