@@ -16,7 +16,7 @@ use serde::{Deserialize, Serialize};
 
 use super::shard::Shard;
 use super::{GraspSampler, SamplingError};
-use crate::engine::Grasp;
+use crate::engine::{Grasp, Regime};
 use crate::fem::nonlinear::{Elimination, NewtonOptions, SolveStats};
 use crate::mesh::{TetMesh, VolumetricLaw};
 
@@ -279,7 +279,7 @@ pub fn read_info(dir: &Path) -> Result<DatasetInfo, DatasetError> {
     let text = std::fs::read_to_string(&path).map_err(io(&path))?;
     let mut info: DatasetInfo = serde_json::from_str(&text).map_err(|e| format(&path, e))?;
     // Nonlinear data from before the law was recorded was solved under (κ/2)(J − 1)².
-    if info.regime == "nonlinear" && info.volumetric_law.is_none() {
+    if info.regime == Regime::Nonlinear.name() && info.volumetric_law.is_none() {
         info.volumetric_law = Some(VolumetricLaw::JMinusOneSquared);
     }
     Ok(info)

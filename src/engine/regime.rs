@@ -25,6 +25,13 @@ impl Regime {
             Regime::Nonlinear => "nonlinear",
         }
     }
+
+    /// The regime a model's manifest or a dataset names; `None` for any other word.
+    pub fn from_name(name: &str) -> Option<Self> {
+        [Regime::Linear, Regime::Nonlinear]
+            .into_iter()
+            .find(|r| r.name() == name)
+    }
 }
 
 impl std::fmt::Display for Regime {
@@ -91,6 +98,14 @@ mod tests {
         assert_eq!(best, Some("pod-base-nl"));
         let linear = most_accurate(models.iter(), Regime::Linear).map(|m| m.name.as_str());
         assert_eq!(linear, Some("pod-res"));
+    }
+
+    #[test]
+    fn a_regime_is_read_back_from_its_name_and_no_other_word() {
+        for regime in [Regime::Linear, Regime::Nonlinear] {
+            assert_eq!(Regime::from_name(regime.name()), Some(regime));
+        }
+        assert_eq!(Regime::from_name("Nonlinear"), None);
     }
 
     #[test]

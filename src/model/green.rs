@@ -6,7 +6,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use crate::engine::{
-    Answer, DeformationModel, Forces, ModelError, ModelInfo, ModelKind, StageTiming, Target, VOLUMETRIC_LAW_KEY,
+    Answer, DeformationModel, Forces, ModelError, ModelInfo, ModelKind, Regime, StageTiming, Target, VOLUMETRIC_LAW_KEY,
 };
 use crate::fem::{GreenError, GreenFunctions, Stiffness};
 use crate::mesh::TetMesh;
@@ -27,14 +27,14 @@ impl GreenModel {
         let (description, regime, forces, forces_text) = match stiffness {
             Stiffness::Linear => (
                 "exact linear FEM through precomputed Green's functions (capacitance matrix)",
-                "linear",
+                Regime::Linear,
                 Forces::Exact,
                 "exact: (G[S,S])⁻¹ u_S, the linear FEM's K·u at the held nodes",
             ),
             Stiffness::PreloadTangent => (
                 "the hyperelastic model linearized about its gravity-preloaded equilibrium, through \
                  precomputed Green's functions (capacitance matrix)",
-                "nonlinear",
+                Regime::Nonlinear,
                 Forces::Estimate,
                 "(G[S,S])⁻¹ u_S, the tangent's K·u at the held nodes: the change of the held nodes' \
                  force from the preloaded state, exact for small grasps",
@@ -54,7 +54,7 @@ impl GreenModel {
                 name: stiffness.model_name().to_owned(),
                 kind: ModelKind::Exact,
                 mesh: mesh.content_hash.clone(),
-                regime: regime.to_owned(),
+                regime: regime.name().to_owned(),
                 metadata,
                 forces,
             },

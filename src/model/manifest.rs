@@ -5,6 +5,7 @@ use std::collections::BTreeMap;
 use serde::Deserialize;
 
 use super::ModelLoadError;
+use crate::engine::Regime;
 use crate::mesh::{PriorParams, TetMesh, VolumetricLaw};
 
 /// The prior a model is composed with: added to a residual network's output, read by a network that
@@ -163,7 +164,8 @@ impl Manifest {
     /// The law a nonlinear model's training data was solved under: the manifest's, or for models
     /// exported before manifests named it, (κ/2)(J − 1)². `None` for linear models.
     pub fn volumetric_law(&self) -> Option<VolumetricLaw> {
-        (self.model.regime == "nonlinear").then(|| self.model.volumetric_law.unwrap_or(VolumetricLaw::JMinusOneSquared))
+        (Regime::from_name(&self.model.regime) == Some(Regime::Nonlinear))
+            .then(|| self.model.volumetric_law.unwrap_or(VolumetricLaw::JMinusOneSquared))
     }
 
     pub fn parse(text: &str, origin: &str) -> Result<Self, ModelLoadError> {
@@ -179,7 +181,7 @@ impl Manifest {
                 ),
             ));
         }
-        if !matches!(manifest.model.regime.as_str(), "linear" | "nonlinear") {
+        if Regime::from_name(&manifest.model.regime).is_none() {
             return Err(ModelLoadError::new(
                 origin,
                 format!(
