@@ -295,14 +295,15 @@ fn print_nonlinear_tally(t: &NonlinearTally) {
     let total: f64 = seconds.iter().sum::<f64>().max(1e-9);
     let share = |d: std::time::Duration| 100.0 * d.as_secs_f64() / total;
     let stages = p.assembly + p.factorization + p.linear_solve + p.line_search + p.elimination;
+    let failed = 100.0 * t.failed_seconds / total;
     println!(
         "time: assembly {:.0} %, factorization {:.0} %, linear solves {:.0} %, line search {:.0} %, graspers' \
-         neighbourhood {:.0} %, other {:.0} %",
+         neighbourhood {:.0} %, failed samples {failed:.0} %, other {:.0} %",
         share(p.assembly),
         share(p.factorization),
         share(p.linear_solve),
         share(p.line_search),
         share(p.elimination),
-        (100.0 - share(stages)).max(0.0),
+        (100.0 - share(stages) - failed).max(0.0),
     );
 }

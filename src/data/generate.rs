@@ -47,8 +47,10 @@ pub struct NonlinearTally {
     /// sum divided by `attempted` is the cost of one sample on one core.
     pub solve_seconds: Vec<f64>,
     pub max_newton_iterations: usize,
-    /// Where the solved samples' time went.
+    /// Where the converged samples' time went (a failed solve reports no profile).
     pub profile: SolveProfile,
+    /// The failed samples' solve time (s): every load-step cut they tried.
+    pub failed_seconds: f64,
 }
 
 impl NonlinearTally {
@@ -64,6 +66,7 @@ impl NonlinearTally {
         self.cut += usize::from(stats.step_cuts > 0);
         if let Some(reason) = failure {
             self.failed += 1;
+            self.failed_seconds += seconds;
             *self.failure_reasons.entry(reason.to_owned()).or_default() += 1;
         }
         self.shifted += usize::from(stats.shifted_factorizations > 0);
