@@ -50,7 +50,7 @@ async function start() {
   renderer.upload();
   $("mesh-name").textContent = `${mesh.name}: ${mesh.nodeCount} nodes, ${surface.count} on the surface`;
   const picker = $("model");
-  for (const model of byRegimeThenAccuracy(models)) {
+  for (const model of byRegimeThenAccuracy(models, defaultModel)) {
     const option = document.createElement("option");
     option.value = model.name;
     const dcm = testDcm(model);
@@ -87,10 +87,12 @@ async function start() {
   requestAnimationFrame(frame);
 }
 
-// Each regime's models together, the most accurate on held-out data first and unscored ones (the
-// prior, the exact models) after them, in the server's order.
-function byRegimeThenAccuracy(models) {
-  const regimes = [...new Set(models.map((m) => m.regime))];
+// Each regime's models together, the server's default's regime first (`nak serve --regime`), the most
+// accurate on held-out data first and unscored ones (the prior, the exact models) after them, in the
+// server's order.
+function byRegimeThenAccuracy(models, defaultModel) {
+  const preferred = models.find((m) => m.name === defaultModel && m.name !== "kelvinlet")?.regime;
+  const regimes = [...new Set([preferred, ...models.map((m) => m.regime)].filter((r) => r !== undefined))];
   const score = (m) => (Number.isFinite(testDcm(m)) ? testDcm(m) : -Infinity);
   return [...models].sort((a, b) => regimes.indexOf(a.regime) - regimes.indexOf(b.regime) || score(b) - score(a));
 }
