@@ -252,3 +252,26 @@ fn generate(
     result.chunks_written = pending.len();
     Ok(result)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A failed solve reports no profile: its whole time is counted apart, so that `nak datagen`
+    /// can say how much of a run the failures took instead of leaving it unexplained.
+    #[test]
+    fn a_failed_samples_time_is_counted_apart() {
+        let mut tally = NonlinearTally::default();
+        let converged = SolveStats {
+            newton_iterations: 10,
+            ..SolveStats::default()
+        };
+        tally.add(&converged, &SolveProfile::default(), None, 1.5);
+        let reason = "Newton did not converge in the allowed iterations";
+        tally.add(&SolveStats::default(), &SolveProfile::default(), Some(reason), 30.0);
+        assert_eq!((tally.attempted, tally.failed), (2, 1));
+        assert_eq!(tally.failed_seconds, 30.0);
+        assert_eq!(tally.solve_seconds, vec![1.5, 30.0]);
+        assert_eq!(tally.failure_reasons.get(reason), Some(&1));
+    }
+}
