@@ -164,7 +164,7 @@ impl Manifest {
     /// The law a nonlinear model's training data was solved under: the manifest's, or for models
     /// exported before manifests named it, (κ/2)(J − 1)². `None` for linear models.
     pub fn volumetric_law(&self) -> Option<VolumetricLaw> {
-        (Regime::from_name(&self.model.regime) == Some(Regime::Nonlinear))
+        (self.model.regime == Regime::Nonlinear.name())
             .then(|| self.model.volumetric_law.unwrap_or(VolumetricLaw::JMinusOneSquared))
     }
 

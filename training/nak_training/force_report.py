@@ -2,7 +2,7 @@
 the test split per subset; a figure of each served force component against the FEM's; and what a force
 head costs a request (the same graph timed through nak eval with its `forces` output cut away).
 
-python -m nak_training forces --data DATA --model pod-res-gt-forces-nl   (writes docs/reports/forces*)
+python -m nak_training forces --data DATA --model pod-base-forces-nl   (writes docs/reports/forces*)
 """
 
 from __future__ import annotations

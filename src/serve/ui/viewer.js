@@ -50,7 +50,9 @@ async function start() {
   renderer.upload();
   $("mesh-name").textContent = `${mesh.name}: ${mesh.nodeCount} nodes, ${surface.count} on the surface`;
   const picker = $("model");
-  for (const model of byRegimeThenAccuracy(models, defaultModel)) {
+  // The server's default, unless it is the Kelvinlet (what an unnamed request gets without --regime).
+  const chosen = defaultModel && defaultModel !== "kelvinlet" ? defaultModel : undefined;
+  for (const model of byRegimeThenAccuracy(models, chosen)) {
     const option = document.createElement("option");
     option.value = model.name;
     const dcm = testDcm(model);
@@ -65,7 +67,6 @@ async function start() {
   const scored = models.filter((m) => Number.isFinite(testDcm(m)));
   const best = scored.sort((a, b) => testDcm(b) - testDcm(a))[0];
   const fallback = models.find((m) => m.kind === "exact") ?? models.find((m) => m.name === "kelvinlet");
-  const chosen = defaultModel && defaultModel !== "kelvinlet" ? defaultModel : undefined;
   state.model = chosen ?? best?.name ?? fallback?.name ?? models[0]?.name ?? "";
   picker.value = state.model;
   picker.addEventListener("change", () => {
@@ -90,8 +91,8 @@ async function start() {
 // Each regime's models together, the server's default's regime first (`nak serve --regime`), the most
 // accurate on held-out data first and unscored ones (the prior, the exact models) after them, in the
 // server's order.
-function byRegimeThenAccuracy(models, defaultModel) {
-  const preferred = models.find((m) => m.name === defaultModel && m.name !== "kelvinlet")?.regime;
+function byRegimeThenAccuracy(models, chosen) {
+  const preferred = models.find((m) => m.name === chosen)?.regime;
   const regimes = [...new Set([preferred, ...models.map((m) => m.regime)].filter((r) => r !== undefined))];
   const score = (m) => (Number.isFinite(testDcm(m)) ? testDcm(m) : -Infinity);
   return [...models].sort((a, b) => regimes.indexOf(a.regime) - regimes.indexOf(b.regime) || score(b) - score(a));
