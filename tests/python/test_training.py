@@ -29,7 +29,7 @@ from nak_training.export import export
 from nak_training.force_report import write_force_report
 from nak_training.kelvinlet import Prior, pad_points
 from nak_training.models import Grasped, MeshGNN, build
-from nak_training.reduced import Ensemble
+from nak_training.reduced import Ensemble, GraspEncoder
 from nak_training.reduced_train import ReducedTrainer, load_reduced
 from nak_training.served import Nak
 from nak_training.train import Trainer
@@ -355,8 +355,8 @@ def test_training_beats_the_untrained_network_through_nak_eval(
 @pytest.fixture(scope="module")
 def reduced(coarse_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Reduced-basis networks from the coarse dataset: a trained POD +Res in three shipping forms (f32
-    and f16 basis files, folded graph), its untrained twin, an ensemble of three, and a DeepONet +Reg
-    with the pooled encoder."""
+    and f16 basis files, folded graph), its untrained twin, an ensemble of three, an ensemble of two grasp
+    encoders, and a DeepONet +Reg with the pooled encoder."""
     dataset = open_dataset(coarse_data)
     runs = tmp_path_factory.mktemp("reduced-runs", numbered=False)
     models = tmp_path_factory.mktemp("reduced-models")
@@ -367,6 +367,7 @@ def reduced(coarse_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path
         dict(name="pod-graph", form="graph", **pod),
         dict(name="pod-untrained", **{**pod, "steps": 1, "lr": 1e-12}),
         dict(name="pod-ensemble", members=3, basis_precision="f32", **pod),
+        dict(name="pod-grasps", encoder="grasps", members=2, basis_precision="f32", **pod),
         dict(
             name="deeponet-reg",
             architecture="deeponet",
@@ -405,7 +406,7 @@ def test_reduced_networks_are_served_as_their_graph_and_basis_compute_them(
         ]
         served = {
             name: np.frombuffer(stub.Predict(pb.PredictRequest(model=name, grasps=grasps)).displacements, "<f4")
-            for name in ("pod-trained", "pod-f16", "pod-graph", "pod-ensemble", "deeponet-reg")
+            for name in ("pod-trained", "pod-f16", "pod-graph", "pod-ensemble", "pod-grasps", "deeponet-reg")
         }
 
     positions = dataset.mesh.positions
@@ -430,6 +431,7 @@ def test_reduced_networks_are_served_as_their_graph_and_basis_compute_them(
     assert relative(served["pod-graph"], expected("pod-trained")) < 1e-5
     assert 0 < relative(served["pod-f16"], expected("pod-trained")) < 1e-3  # f16 basis: 2⁻¹¹ relative per value
     assert relative(served["pod-ensemble"], expected("pod-ensemble")) < 1e-5
+    assert relative(served["pod-grasps"], expected("pod-grasps")) < 1e-5
     assert np.isfinite(served["deeponet-reg"]).all()
 
 
@@ -447,6 +449,33 @@ def test_an_ensemble_answers_the_mean_of_its_members_which_differ(coarse_data: P
     assert float((each[0] - each[1]).norm()) > 1e-3 * float(each[0].norm())  # own weights, own batches
     with pytest.raises(TrainingInputError, match="members > 1"):
         parse_config(tiny_config(members=2), "tiny")  # PointNet: no ensembles
+
+
+def test_the_grasp_encoder_sees_grasps_whatever_their_order_or_padding(coarse_data: Path, reduced: Path) -> None:
+    """Its offsets are in the train split's own unit (the grasps' RMS radius: millimetres on the
+    phantom), its answer does not depend on the order of the points or on padding, and a grasp's
+    point count changes it where mean and max pooling alone could not tell."""
+    config = load_config(reduced / "pod-grasps" / "config.toml")
+    net, _ = load_reduced(reduced.parent / "reduced-runs" / "pod-grasps", config)
+    assert isinstance(net.encoder, Ensemble)
+    member = net.encoder.encoders[0]
+    assert isinstance(member, GraspEncoder) and 1e-4 < float(member.r_scale) < 5e-2
+    dataset = open_dataset(coarse_data)
+    positions = dataset.mesh.positions.float()
+    nodes = torch.tensor([0, 1, 2, 3, 4])
+    u = torch.tensor([[0.01, 0.0, 0.0]] * 3 + [[0.0, 0.0, -0.01]] * 2)  # two grasps
+    interaction = torch.cat([positions[nodes], u], 1)[None]
+    with torch.no_grad():
+        g = net.encoder(interaction)
+        shuffled = net.encoder(interaction[:, torch.tensor([3, 0, 4, 2, 1])])
+        padded = net.encoder(
+            torch.cat([interaction, torch.zeros(1, 2, 6)], 1), torch.tensor([[True] * 5 + [False] * 2])
+        )
+        # The first grasp's points again, at its centroid: same positions pooled, one point more.
+        centroid = interaction[:, :3].mean(1, keepdim=True)
+        grown = net.encoder(torch.cat([interaction, centroid], 1))
+    assert torch.allclose(g, shuffled, atol=1e-5) and torch.allclose(g, padded, atol=1e-5)
+    assert float((grown - g).norm()) > 1e-4 * float(g.norm())
 
 
 def test_reduced_training_beats_the_untrained_network_through_nak_eval(

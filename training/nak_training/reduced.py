@@ -9,11 +9,14 @@ alone. Per request the work scales with K (and the M-term product), not with a n
   evaluated over the mesh's nodes once, at export (a basis file) or by ONNX Runtime's constant folding
   at load (a graph holding the positions).
 
-Two set encoders (`encoder` in the configuration):
+Three set encoders (`encoder` in the configuration):
 
 * `linear`: linear in the prescribed displacements given the geometry, as linear elasticity is: per
   point a matrix B_k [M, 3] from the point's position and a summary of the whole set, g = mean_k
-  B_k û_k, plus a nonlinear term of the summary (for what is not linear). The more accurate.
+  B_k û_k, plus a nonlinear term of the summary (for what is not linear).
+* `grasps`: the linear encoder summed over grasps, each point also seeing its offset from its grasp's
+  centroid and its grasp's point count (which mean and max pooling cannot see, and on which the
+  nonlinear fields depend strongly). The most accurate.
 * `pooled`: a per-point MLP, mean and max over the points, an MLP head: few operators, so ONNX
   Runtime answers in a few tens of microseconds. The faster.
 
@@ -44,7 +47,7 @@ def mlp(widths: list[int]) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
-ENCODERS = ("linear", "pooled")
+ENCODERS = ("linear", "pooled", "grasps")
 
 
 class Encoder(nn.Module):
@@ -139,6 +142,80 @@ class SetEncoder(Encoder):
         return (linear + self.head(summary)) * self.g_scale, f, summary
 
 
+def same_grasp(f: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+    """[B, K, K]: 1 where two (real) points move exactly alike, i.e. belong to one grasp (a request gives
+    one displacement per grasp, and its points are all the grasp shows of itself)."""
+    u = f[..., 3:]
+    alike = (((u.unsqueeze(2) - u.unsqueeze(1)) ** 2).sum(-1) < SAME_GRASP).to(f.dtype)
+    if mask is None:
+        return alike
+    real = mask.to(f.dtype)
+    return alike * real.unsqueeze(1) * real.unsqueeze(2)
+
+
+class GraspEncoder(Encoder):
+    """The linear encoder summed over grasps, each seen whole: g = Σ_grasps (mean_{k ∈ grasp} B_k û_k +
+    head_k), with B_k and head_k from the point, its grasp's mean embedding, the other grasps' mean
+    embedding and the offset of their centroid from its grasp's, and the whole set's summary.
+
+    Each point's input adds to its position and displacement its offset from its grasp's centroid (in
+    units of `r_scale`, the train split's RMS offset: a few millimetres, invisible in positions
+    normalized by the organ's size) and the log of its grasp's point count: how far the organ follows
+    a grasp depends strongly on how much of the surface it holds, which mean and max pooling cannot
+    count. Two graspers start from the sum of what each would do alone (superposition, exact in linear
+    elasticity up to the grasps' coupling), which the one-grasper samples teach; what each grasp sees
+    of the others carries the coupling.
+    """
+
+    r_scale: torch.Tensor
+
+    FEATURES = 10  # position, displacement, offset from the grasp's centroid, log of the grasp's count
+
+    def __init__(self, modes: int, width: int) -> None:
+        super().__init__(modes)
+        self.register_buffer("r_scale", torch.ones(1))
+        self.embed = mlp([self.FEATURES, width, width, width])
+        context = 2 * width + 3  # the own and other grasps' mean embeddings, the others' centroid offset
+        self.matrices = mlp([self.FEATURES + context + 2 * width, width, width, 3 * modes])
+        self.head = mlp([context + 2 * width, width, modes])
+
+    def encode(
+        self, interaction: torch.Tensor, mask: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        f = self.normalized(interaction)
+        alike = same_grasp(f, mask)
+        real = torch.ones_like(alike) if mask is None else (mask.unsqueeze(1) & mask.unsqueeze(2)).to(f.dtype)
+        others = real - alike
+        size = alike.sum(-1, keepdim=True).clamp_min(1.0)  # [B, K, 1]: the point's grasp's point count
+        count = others.sum(-1, keepdim=True)  # points of the other grasps (0 for one grasper)
+        x = interaction[..., :3]
+        centroid = (alike @ x) / size
+        features = torch.cat([f, (x - centroid) / self.r_scale, size.log()], dim=-1)
+        e = self.embed(features)
+        summary, _ = pool(e, mask)
+        apart = ((others @ x) / count.clamp_min(1.0) - centroid) / self.x_std * (count > 0).to(f.dtype)
+        context = torch.cat([(alike @ e) / size, (others @ e) / count.clamp_min(1.0), apart], dim=-1)
+        b = self.matrices[1:](split_first_layer(self.matrices, [features, context], summary))
+        b = b.unflatten(-1, (self.modes, 3))
+        head = self.head[1:](split_first_layer(self.head, [context], summary))
+        per_point = (b * f[..., 3:].unsqueeze(-2)).sum(-1) + head  # [B, K, M]
+        share = 1.0 / size if mask is None else mask.unsqueeze(-1).to(f.dtype) / size
+        return (per_point * share).sum(1) * self.g_scale, f, summary
+
+
+def split_first_layer(net: nn.Sequential, per_point: list[torch.Tensor], summary: torch.Tensor) -> torch.Tensor:
+    """The first Linear of `net` over [per-point inputs…, summary], with the summary's columns applied
+    once per set rather than to a copy per point (as SetEncoder does)."""
+    first = net[0]
+    assert isinstance(first, nn.Linear)
+    out = (summary @ first.weight[:, -summary.shape[-1] :].T + first.bias).unsqueeze(1)
+    start = 0
+    for part in per_point:
+        out = out + part @ first.weight[:, start : start + part.shape[-1]].T
+        start += part.shape[-1]
+    return out
+
+
 class Ensemble(Encoder):
     """Several encoders of one kind, each trained on its own batches from its own initial weights; g is
     the mean of theirs, in one graph. Where a network fits its few samples closely (the nonlinear
@@ -153,7 +230,8 @@ class Ensemble(Encoder):
         return [cast(Encoder, member) for member in self.members]
 
     def set_statistics(self, **stats: torch.Tensor) -> None:
-        super().set_statistics(**stats)
+        own = dict(self.named_buffers(recurse=False))
+        super().set_statistics(**{name: value for name, value in stats.items() if name in own})
         for member in self.encoders:
             member.set_statistics(**stats)
 
@@ -191,9 +269,8 @@ class ForceHead(nn.Module):
         h = f @ w[:, :6].T + (summary @ w[:, 6:].T + self.first.bias).unsqueeze(1)
         out = self.rest(h)
         a = out[..., :9].unflatten(-1, (3, 3))
-        u = f[..., 3:]
-        alike = (((u.unsqueeze(2) - u.unsqueeze(1)) ** 2).sum(-1) < SAME_GRASP).to(f.dtype).sum(-1)  # [B, K]
-        return ((a * u.unsqueeze(-2)).sum(-1) + out[..., 9:]) * (self.f_scale / alike.unsqueeze(-1))
+        alike = same_grasp(f, None).sum(-1, keepdim=True)  # [B, K, 1]
+        return ((a * f[..., 3:].unsqueeze(-2)).sum(-1) + out[..., 9:]) * (self.f_scale / alike)
 
 
 class Trunk(nn.Module):
@@ -231,7 +308,8 @@ class ReducedNet(nn.Module):
         super().__init__()
 
         def one() -> Encoder:
-            return SetEncoder(modes, width) if encoder == "linear" else PooledEncoder(modes, width)
+            kinds = {"linear": SetEncoder, "pooled": PooledEncoder, "grasps": GraspEncoder}
+            return kinds[encoder](modes, width)
 
         self.encoder: Encoder = one() if members == 1 else Ensemble([one() for _ in range(members)])
         self.trunk = Trunk(modes, width) if architecture == "deeponet" else None

@@ -76,6 +76,19 @@ class GraspForces:
         return error[real]
 
 
+def grasp_offset_rms(positions: torch.Tensor, split: Split) -> torch.Tensor:
+    """RMS distance of a grasped node from its grasp's centroid over `split` (metres): the unit of the
+    grasp encoder's offsets."""
+    offsets = []
+    for s in split.samples:
+        x = positions[torch.from_numpy(s.nodes)]
+        grasp = torch.from_numpy(s.grasp_of_point)
+        for g in grasp.unique():
+            points = x[grasp == g]
+            offsets.append(points - points.mean(0))
+    return torch.cat(offsets).pow(2).sum(-1).mean().sqrt()
+
+
 def squared_norms(fields: torch.Tensor, volumes: torch.Tensor) -> torch.Tensor:
     """‖u‖²_{L2(Ω)} per sample of fields [S, N, 3]."""
     return (fields.double() ** 2).sum(-1) @ volumes.double()
@@ -104,6 +117,8 @@ class ReducedTrainer(Run):
         positions = self.mesh.positions
         u = self.train_points[..., 3:][self.train_mask]
         net.encoder.set_statistics(x_mean=positions.mean(0), x_std=positions.std(0), u_scale=(u**2).mean(0).sqrt())
+        if config.encoder == "grasps":
+            net.encoder.set_statistics(r_scale=grasp_offset_rms(positions, self.train).reshape(1))
         self.basis: torch.Tensor | None = None
         if net.trunk is None:
             self.basis = self._pod_basis()
