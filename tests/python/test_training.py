@@ -522,19 +522,23 @@ def test_a_network_on_a_green_prior_is_trained_and_served_on_it(
     assert np.abs(network[0] - (green[0] + residual)).max() <= 1e-3 * scale
 
 
-@pytest.mark.parametrize("prior", ["kelvinlet", "green-linear"])
+@pytest.mark.parametrize(
+    ("prior", "encoder"), [("kelvinlet", "linear"), ("green-linear", "linear"), ("kelvinlet", "grasps")]
+)
 def test_a_force_head_is_trained_exported_and_served_as_the_sum_of_its_point_forces(
-    nak_binary: Path, coarse_data: Path, tmp_path: Path, prior: str
+    nak_binary: Path, coarse_data: Path, tmp_path: Path, prior: str, encoder: str
 ) -> None:
     """forces = true: the graph gains `forces` [B, K, 3], checked against onnxruntime at export; the
     manifest says how nak serves them (direct on the Kelvinlet; on green-linear, residual: added to its
-    exact forces); nak serves each grasp's sum; training lowers the error nak eval measures."""
+    exact forces); nak serves each grasp's sum; training lowers the error nak eval measures. The grasp
+    encoder gives the head its grasp's size and shape too."""
     dataset = open_dataset(coarse_data)
     nak = Nak(nak_binary, COARSE)
     models = tmp_path / "models"
     errors = {}
     for name, steps, lr in (("trained", 300, 3e-3), ("untrained", 1, 1e-12)):
-        values = dict(name=name, architecture="pod", prior=prior, modes=8, width=32, steps=steps, batch=8, lr=lr)
+        values = dict(name=name, architecture="pod", prior=prior, encoder=encoder, modes=8, width=32)
+        values.update(steps=steps, batch=8, lr=lr)
         mode = "direct" if prior == "kelvinlet" else "residual"
         config = parse_config(
             tiny_config(**values, forces=True, force_mode=mode, force_weight=1.0, val_every=100), "tiny"
@@ -589,7 +593,7 @@ def test_a_force_head_is_trained_exported_and_served_as_the_sum_of_its_point_for
         )
         expected = expected + load_file(str(out))["grasp_forces"][row]
     assert np.abs(served - expected).max() <= 1e-4 * np.abs(expected).max(), (served, expected)
-    if prior != "kelvinlet":
+    if prior != "kelvinlet" or encoder != "linear":
         return
     # The force report: the prior and the network per subset, the figure, and the head's cost.
     report = write_force_report(

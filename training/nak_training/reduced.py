@@ -28,6 +28,7 @@ points of each grasp (docs/design.md §7).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, cast
 
 import torch
@@ -59,6 +60,9 @@ class Encoder(nn.Module):
     u_scale: torch.Tensor
     g_scale: torch.Tensor
 
+    # What each point gives a force head: its normalized position and displacement first.
+    POINT_FEATURES = 6
+
     def __init__(self, modes: int) -> None:
         super().__init__()
         self.modes = modes
@@ -80,7 +84,8 @@ class Encoder(nn.Module):
     def encode(
         self, interaction: torch.Tensor, mask: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """g [B, M], the normalized points [B, K, 6] and the set's summary [B, 2W] (for a force head)."""
+        """g [B, M], each point's features [B, K, POINT_FEATURES] (its normalized position and displacement
+        first) and the set's summary [B, 2W], the last two for a force head."""
         raise NotImplementedError
 
 
@@ -125,18 +130,12 @@ class SetEncoder(Encoder):
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """`mask` [B, K] marks real points in a padded training batch; a served request has none.
 
-        Written for few operators at serving time (ONNX Runtime's cost per request is mostly per
-        operator): the first layer of `matrices`, a Linear over [x, summary], is split into its x and
-        summary columns, so the summary is transformed once per set instead of being copied to every
-        point. Slices of weights are constants, folded when the graph is loaded.
+        The first layer of `matrices`, a Linear over [x, summary], is split (`split_linear`).
         """
         f = self.normalized(interaction)
         e = self.embed(f)
         summary, weights = pool(e, mask)
-        first = self.matrices[0]
-        assert isinstance(first, nn.Linear)
-        h = f[..., :3] @ first.weight[:, :3].T + (summary @ first.weight[:, 3:].T + first.bias).unsqueeze(1)
-        b = self.matrices[1:](h).unflatten(-1, (self.modes, 3))
+        b = self.matrices[1:](split_linear(self.matrices[0], [f[..., :3]], summary)).unflatten(-1, (self.modes, 3))
         linear = (b * f[..., 3:].unsqueeze(-2)).sum(-1)  # [B, K, M]: B_k û_k
         linear = linear.mean(1) if weights is None else (linear * weights).sum(1) / weights.sum(1)
         return (linear + self.head(summary)) * self.g_scale, f, summary
@@ -145,7 +144,7 @@ class SetEncoder(Encoder):
 def same_grasp(f: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
     """[B, K, K]: 1 where two (real) points move exactly alike, i.e. belong to one grasp (a request gives
     one displacement per grasp, and its points are all the grasp shows of itself)."""
-    u = f[..., 3:]
+    u = f[..., 3:6]
     alike = (((u.unsqueeze(2) - u.unsqueeze(1)) ** 2).sum(-1) < SAME_GRASP).to(f.dtype)
     if mask is None:
         return alike
@@ -169,14 +168,15 @@ class GraspEncoder(Encoder):
 
     r_scale: torch.Tensor
 
-    FEATURES = 10  # position, displacement, offset from the grasp's centroid, log of the grasp's count
+    # Position, displacement, offset from the grasp's centroid, log of the grasp's count.
+    POINT_FEATURES = 10
 
     def __init__(self, modes: int, width: int) -> None:
         super().__init__(modes)
         self.register_buffer("r_scale", torch.ones(1))
-        self.embed = mlp([self.FEATURES, width, width, width])
+        self.embed = mlp([self.POINT_FEATURES, width, width, width])
         context = 2 * width + 3  # the own and other grasps' mean embeddings, the others' centroid offset
-        self.matrices = mlp([self.FEATURES + context + 2 * width, width, width, 3 * modes])
+        self.matrices = mlp([self.POINT_FEATURES + context + 2 * width, width, width, 3 * modes])
         self.head = mlp([context + 2 * width, width, modes])
 
     def encode(
@@ -195,18 +195,18 @@ class GraspEncoder(Encoder):
         summary, _ = pool(e, mask)
         apart = ((others @ x) / count.clamp_min(1.0) - centroid) / self.x_std * (count > 0).to(f.dtype)
         context = torch.cat([(alike @ e) / size, (others @ e) / count.clamp_min(1.0), apart], dim=-1)
-        b = self.matrices[1:](split_first_layer(self.matrices, [features, context], summary))
+        b = self.matrices[1:](split_linear(self.matrices[0], [features, context], summary))
         b = b.unflatten(-1, (self.modes, 3))
-        head = self.head[1:](split_first_layer(self.head, [context], summary))
+        head = self.head[1:](split_linear(self.head[0], [context], summary))
         per_point = (b * f[..., 3:].unsqueeze(-2)).sum(-1) + head  # [B, K, M]
         share = 1.0 / size if mask is None else mask.unsqueeze(-1).to(f.dtype) / size
-        return (per_point * share).sum(1) * self.g_scale, f, summary
+        return (per_point * share).sum(1) * self.g_scale, features, summary
 
 
-def split_first_layer(net: nn.Sequential, per_point: list[torch.Tensor], summary: torch.Tensor) -> torch.Tensor:
-    """The first Linear of `net` over [per-point inputs…, summary], with the summary's columns applied
-    once per set rather than to a copy per point (as SetEncoder does)."""
-    first = net[0]
+def split_linear(first: nn.Module, per_point: list[torch.Tensor], summary: torch.Tensor) -> torch.Tensor:
+    """The Linear `first` over [per-point inputs [B, K, ·]…, summary [B, S]], its summary columns applied
+    once per set rather than to a copy per point: ONNX Runtime's cost per request is mostly per operator
+    and per value, and slices of weights are constants folded when the graph is loaded."""
     assert isinstance(first, nn.Linear)
     out = (summary @ first.weight[:, -summary.shape[-1] :].T + first.bias).unsqueeze(1)
     start = 0
@@ -238,7 +238,7 @@ class Ensemble(Encoder):
     def encode(
         self, interaction: torch.Tensor, mask: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The members' mean g, with the first member's normalized points and summary."""
+        """The members' mean g, with the first member's point features and summary."""
         outputs = [member.encode(interaction, mask) for member in self.encoders]
         g = torch.stack([g for g, _, _ in outputs]).mean(0)
         return g, outputs[0][1], outputs[0][2]
@@ -246,8 +246,9 @@ class Ensemble(Encoder):
 
 class ForceHead(nn.Module):
     """The force (N) on each interaction point: its grasp's share of (A_k û_k + c_k) · f_scale, with
-    A_k [3, 3] and c_k from an MLP over the point's normalized input and the set's summary (its first
-    layer split as in SetEncoder, so the summary is transformed once per set).
+    A_k [3, 3] and c_k from an MLP over the point's features from the encoder (its normalized input, and
+    with the grasp encoder its grasp's size and shape) and the set's summary (its first layer split as
+    in SetEncoder, so the summary is transformed once per set).
 
     nak sums the points of each grasp, but a grasp's force does not grow with the nodes it holds (on the
     phantom it hardly grows with the displacement either: the organ swings), so each point gives its
@@ -256,21 +257,19 @@ class ForceHead(nn.Module):
 
     f_scale: torch.Tensor
 
-    def __init__(self, width: int, hidden: int) -> None:
+    def __init__(self, width: int, hidden: int, point_features: int = Encoder.POINT_FEATURES) -> None:
         """`width`: the encoder's (its summary has 2 × width values); `hidden`: the head's own, which sets
-        its cost per point."""
+        its cost per point; `point_features`: what the encoder gives of each point."""
         super().__init__()
-        self.first = nn.Linear(6 + 2 * width, hidden)
+        self.first = nn.Linear(point_features + 2 * width, hidden)
         self.rest = nn.Sequential(nn.GELU(), nn.Linear(hidden, hidden), nn.GELU(), nn.Linear(hidden, 12))
         self.register_buffer("f_scale", torch.ones(1))
 
-    def forward(self, f: torch.Tensor, summary: torch.Tensor) -> torch.Tensor:
-        w = self.first.weight
-        h = f @ w[:, :6].T + (summary @ w[:, 6:].T + self.first.bias).unsqueeze(1)
-        out = self.rest(h)
+    def forward(self, points: torch.Tensor, summary: torch.Tensor) -> torch.Tensor:
+        out = self.rest(split_linear(self.first, [points], summary))
         a = out[..., :9].unflatten(-1, (3, 3))
-        alike = same_grasp(f, None).sum(-1, keepdim=True)  # [B, K, 1]
-        return ((a * f[..., 3:].unsqueeze(-2)).sum(-1) + out[..., 9:]) * (self.f_scale / alike)
+        alike = same_grasp(points, None).sum(-1, keepdim=True)  # [B, K, 1]
+        return ((a * points[..., 3:6].unsqueeze(-2)).sum(-1) + out[..., 9:]) * (self.f_scale / alike)
 
 
 class Trunk(nn.Module):
@@ -307,13 +306,15 @@ class ReducedNet(nn.Module):
         """`force_width`: the force head's width (None: no force head); `members`: encoders averaged."""
         super().__init__()
 
-        def one() -> Encoder:
-            kinds = {"linear": SetEncoder, "pooled": PooledEncoder, "grasps": GraspEncoder}
-            return kinds[encoder](modes, width)
-
-        self.encoder: Encoder = one() if members == 1 else Ensemble([one() for _ in range(members)])
+        kinds: dict[str, Callable[[int, int], Encoder]] = {
+            "linear": SetEncoder,
+            "pooled": PooledEncoder,
+            "grasps": GraspEncoder,
+        }
+        encoders = [kinds[encoder](modes, width) for _ in range(members)]
+        self.encoder: Encoder = encoders[0] if members == 1 else Ensemble(encoders)
         self.trunk = Trunk(modes, width) if architecture == "deeponet" else None
-        self.forces = ForceHead(width, force_width) if force_width is not None else None
+        self.forces = None if force_width is None else ForceHead(width, force_width, encoders[0].POINT_FEATURES)
 
     def encode(
         self, interaction: torch.Tensor, mask: torch.Tensor | None = None
