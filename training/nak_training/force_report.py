@@ -1,6 +1,7 @@
 """Grasp forces against the finite elements, as nak serves them: per model, `nak eval`'s force error on
-the test split per subset; a figure of each served force component against the FEM's; and what a force
-head costs a request (the same graph timed through nak eval with its `forces` output cut away).
+the test split per subset; a figure of each served force component against the FEM's; what a force
+head costs a request (the same graph timed through nak eval with its `forces` output cut away); and how
+the FEM's force grows with the nodes a grasper holds, which a head must see to learn it.
 
 python -m nak_training forces --data DATA --model pod-base-forces-nl   (writes docs/reports/forces*)
 """
@@ -23,7 +24,7 @@ import onnx.utils  # noqa: E402
 import tomli_w  # noqa: E402
 from safetensors.numpy import load_file  # noqa: E402
 
-from .dataset import open_dataset  # noqa: E402
+from .dataset import Dataset, is_failed, open_dataset, read_json  # noqa: E402
 from .errors import TrainingInputError  # noqa: E402
 from .served import Nak  # noqa: E402
 
@@ -32,6 +33,9 @@ PRIOR = "green-tangent"
 SUBSETS = ("single", "multi", "combined")
 TIMING_ROUNDS = 5
 TIMED_REQUESTS = 400
+# Single-grasper pushes deeper than this (metres) are grouped by held-node count: shallow pushes would
+# mix the count's effect with the depth's.
+DEEP_PUSH = 0.05
 
 
 def write_force_report(data: Path, models: list[Path], nak: Path, mesh: Path, out: Path, prior: str = PRIOR) -> Path:
@@ -62,8 +66,33 @@ def write_force_report(data: Path, models: list[Path], nak: Path, mesh: Path, ou
     figure = out / "served-against-fem.png"
     plot(truth, forces, {s.index: s.subset for s in test}, figure)
     path = out.with_suffix(".md")
-    path.write_text(markdown(dataset.root, reports, costs, figure.relative_to(path.parent)))
+    path.write_text(markdown(dataset.root, reports, costs, figure.relative_to(path.parent)) + force_by_count(dataset))
     return path
+
+
+def force_by_count(dataset: Dataset) -> str:
+    """A table of the median FEM force of single-grasper pushes deeper than DEEP_PUSH, by the number of
+    nodes the grasper holds, over every converged sample of the set."""
+    by_count: dict[int, list[float]] = {}
+    for chunk in dataset.complete_chunks():
+        for record in read_json(dataset.root / f"chunk-{chunk:05d}.json"):
+            grasps = record.get("grasps", [])
+            if record.get("subset") != "single" or is_failed(record) or len(grasps) != 1 or "force" not in grasps[0]:
+                continue
+            if np.linalg.norm(grasps[0]["displacement"]) > DEEP_PUSH:
+                by_count.setdefault(len(grasps[0]["nodes"]), []).append(float(np.linalg.norm(grasps[0]["force"])))
+    if not by_count:
+        return ""
+    lines = [
+        "",
+        f"How the FEM's force grows with what a grasper holds: single-grasper pushes deeper than {DEEP_PUSH * 100:g} cm,",
+        "every converged sample of the set, by the number of nodes held:",
+        "",
+        "| Nodes held | Grasps | median \\|F\\| |",
+        "|---:|---:|---:|",
+    ]
+    lines += [f"| {n} | {len(f)} | {float(np.median(f)):.2f} N |" for n, f in sorted(by_count.items())]
+    return "\n".join(lines) + "\n"
 
 
 def without_forces(model: Path, into: Path) -> None:
