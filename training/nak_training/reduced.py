@@ -141,15 +141,11 @@ class SetEncoder(Encoder):
         return (linear + self.head(summary)) * self.g_scale, f, summary
 
 
-def same_grasp(f: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
-    """[B, K, K]: 1 where two (real) points move exactly alike, i.e. belong to one grasp (a request gives
-    one displacement per grasp, and its points are all the grasp shows of itself)."""
+def same_grasp(f: torch.Tensor) -> torch.Tensor:
+    """[B, K, K]: 1 where two points move exactly alike, i.e. belong to one grasp (a request gives one
+    displacement per grasp, and its points are all the grasp shows of itself)."""
     u = f[..., 3:6]
-    alike = (((u.unsqueeze(2) - u.unsqueeze(1)) ** 2).sum(-1) < SAME_GRASP).to(f.dtype)
-    if mask is None:
-        return alike
-    real = mask.to(f.dtype)
-    return alike * real.unsqueeze(1) * real.unsqueeze(2)
+    return (((u.unsqueeze(2) - u.unsqueeze(1)) ** 2).sum(-1) < SAME_GRASP).to(f.dtype)
 
 
 class GraspEncoder(Encoder):
@@ -183,8 +179,9 @@ class GraspEncoder(Encoder):
         self, interaction: torch.Tensor, mask: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         f = self.normalized(interaction)
-        alike = same_grasp(f, mask)
+        alike = same_grasp(f)
         real = torch.ones_like(alike) if mask is None else (mask.unsqueeze(1) & mask.unsqueeze(2)).to(f.dtype)
+        alike = alike * real  # pairs of real points only
         others = real - alike
         size = alike.sum(-1, keepdim=True).clamp_min(1.0)  # [B, K, 1]: the point's grasp's point count
         count = others.sum(-1, keepdim=True)  # points of the other grasps (0 for one grasper)
@@ -250,10 +247,11 @@ class ForceHead(nn.Module):
     with the grasp encoder its grasp's size and shape) and the set's summary (its first layer split as
     in SetEncoder, so the summary is transformed once per set).
 
-    nak sums the points of each grasp, but a grasp's force does not grow with the nodes it holds (on the
-    phantom it hardly grows with the displacement either: the organ swings), so each point gives its
-    value divided by the number of points moved exactly as it is, which is its grasp's size: the
-    interaction input marks no grasps, and points that move alike are the only grasp it shows."""
+    nak sums the points of each grasp; each point gives its value divided by the number of points moved
+    exactly as it is, which is its grasp's size (the interaction input marks no grasps, and points that
+    move alike are the only grasp it shows). How the force grows with that size (on the phantom, about
+    1.9 N at 4 held nodes to 3.4 N at 8, docs/reports/forces.md) the head learns from the encoder's
+    point features, which with the grasp encoder include the size."""
 
     f_scale: torch.Tensor
 
@@ -268,7 +266,7 @@ class ForceHead(nn.Module):
     def forward(self, points: torch.Tensor, summary: torch.Tensor) -> torch.Tensor:
         out = self.rest(split_linear(self.first, [points], summary))
         a = out[..., :9].unflatten(-1, (3, 3))
-        alike = same_grasp(points, None).sum(-1, keepdim=True)  # [B, K, 1]
+        alike = same_grasp(points).sum(-1, keepdim=True)  # [B, K, 1]
         return ((a * points[..., 3:6].unsqueeze(-2)).sum(-1) + out[..., 9:]) * (self.f_scale / alike)
 
 
