@@ -37,14 +37,17 @@ from nak_training.train import Trainer
 COARSE = ROOT / "models" / "phantom-liver" / "liver-coarse.msh"
 
 
-@pytest.fixture(scope="module")
-def coarse_data(nak_binary: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+def coarse_set(nak_binary: Path, out: Path, single: int, multi: int, seed: int, chunk_size: int) -> Path:
     """A small linear dataset on the coarse phantom, as `nak datagen` writes it."""
-    out = tmp_path_factory.mktemp("data") / "coarse"
-    command = [str(nak_binary), "datagen", "--mesh", str(COARSE), "--regime", "linear", "--single", "60"]
-    command += ["--multi", "40", "--seed", "3", "--out", str(out), "--chunk-size", "50"]
+    command = [str(nak_binary), "datagen", "--mesh", str(COARSE), "--regime", "linear", "--single", str(single)]
+    command += ["--multi", str(multi), "--seed", str(seed), "--out", str(out), "--chunk-size", str(chunk_size)]
     subprocess.run(command, check=True, capture_output=True)
     return out
+
+
+@pytest.fixture(scope="module")
+def coarse_data(nak_binary: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return coarse_set(nak_binary, tmp_path_factory.mktemp("data") / "coarse", 60, 40, seed=3, chunk_size=50)
 
 
 def tiny_config(**overrides: Any) -> dict[str, Any]:
@@ -108,6 +111,17 @@ def test_split_forward_equals_the_full_forward_for_every_row_wise_network() -> N
         model = build(architecture, "paper").eval()
         out, _ = model.forward_normalized(dense[:1])
         assert out.shape == (1, n, 3)
+
+
+def test_a_variant_configuration_names_only_what_it_changes(tmp_path: Path) -> None:
+    (tmp_path / "base.toml").write_text('name = "base"\narchitecture = "pod"\nmethod = "base"\nsteps = 40\n')
+    (tmp_path / "variant.toml").write_text('extends = "base.toml"\nname = "variant"\nbatch = 8\n')
+    variant = load_config(tmp_path / "variant.toml")
+    assert (variant.name, variant.architecture, variant.steps, variant.batch) == ("variant", "pod", 40, 8)
+    assert "extends" not in variant.to_dict()
+    (tmp_path / "base.toml").write_text('extends = "variant.toml"\nname = "base"\n')
+    with pytest.raises(TrainingInputError, match=r"base.toml: extends variant.toml, which leads back here"):
+        load_config(tmp_path / "variant.toml")
 
 
 def test_bad_input_is_refused_naming_the_file_or_key(coarse_data: Path, tmp_path: Path) -> None:
@@ -282,6 +296,66 @@ def test_a_run_is_not_resumed_on_another_set(coarse_data: Path, tmp_path: Path) 
     (reseeded / "dataset.json").write_text(json.dumps({**info, "seed": 5}))
     with pytest.raises(TrainingInputError, match=r"of seed 5: a run is not resumed on another set"):
         Trainer(config, open_dataset(reseeded), run, log=quiet)
+
+
+@pytest.fixture(scope="module")
+def more_data(nak_binary: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A second coarse set, of seed 4, that only adds training samples."""
+    return coarse_set(nak_binary, tmp_path_factory.mktemp("data") / "more", 12, 8, seed=4, chunk_size=10)
+
+
+def test_sets_of_other_seeds_add_every_sample_to_the_train_split(
+    coarse_data: Path, more_data: Path, tmp_path: Path
+) -> None:
+    config = parse_config(tiny_config(method="reg", steps=3), "tiny")
+    dataset, more = open_dataset(coarse_data), open_dataset(more_data)
+    (tmp_path / "alone").mkdir()
+    alone = Trainer(config, dataset, tmp_path / "alone", log=quiet)
+    run = tmp_path / "run"
+    run.mkdir()
+    joined = Trainer(config, dataset.joined([more]), run, log=quiet)
+    # Every sample of the added set, whatever its split, trains; val stays the first set's alone.
+    assert len(joined.train) == len(alone.train) + 20
+    assert [s.index for s in joined.val.samples] == [s.index for s in alone.val.samples]
+    assert torch.equal(joined.train.fields[-20:], more.load("all").fields)
+    joined.run()
+    recorded = [{"dataset": str(more_data), "seed": 4, "single": 12, "multi": 8}]
+    assert json.loads((run / "summary.json").read_text())["more_data"] == recorded
+    export(config, dataset, run, tmp_path / "models", log=quiet)
+    manifest = tomllib.loads((tmp_path / "models" / "tiny" / "manifest.toml").read_text())
+    assert manifest["provenance"]["more_data"] == recorded
+    # Resumed without the added set, or with less of it on disk, the run is refused.
+    with pytest.raises(TrainingInputError, match=r"of seed 3 and all of a 20-sample set of seed 4; .* gives \d+ train"):
+        Trainer(config, dataset, run, log=quiet)
+    partial = tmp_path / "partial"
+    shutil.copytree(more_data, partial)
+    (partial / "chunk-00001.json").unlink()
+    with pytest.raises(TrainingInputError, match=r"a run is not resumed on another set"):
+        Trainer(config, dataset.joined([open_dataset(partial)]), run, log=quiet)
+    # A set still being made is recorded with the chunks it had.
+    early = tmp_path / "early"
+    early.mkdir()
+    Trainer(config, dataset.joined([open_dataset(partial)]), early, log=quiet).run()
+    assert json.loads((early / "summary.json").read_text())["more_data"][0]["chunks"] == [0]
+
+
+def test_only_sets_of_another_seed_and_the_same_law_add_to_the_train_split(
+    coarse_data: Path, more_data: Path, tmp_path: Path
+) -> None:
+    dataset, more = open_dataset(coarse_data), open_dataset(more_data)
+    with pytest.raises(TrainingInputError, match=r"has seed 3, as .*coarse has: the same grasps twice"):
+        dataset.joined([dataset])
+    with pytest.raises(TrainingInputError, match=r"has seed 4, as .*more has: the same grasps twice"):
+        dataset.joined([more, more])
+    relabelled = tmp_path / "nonlinear"
+    shutil.copytree(more_data, relabelled)
+    info = json.loads((relabelled / "dataset.json").read_text())
+    (relabelled / "dataset.json").write_text(json.dumps({**info, "regime": "nonlinear"}))
+    with pytest.raises(TrainingInputError, match=r"only sets of one mesh, regime and law train together"):
+        dataset.joined([open_dataset(relabelled)])
+    served_prior = parse_config(tiny_config(method="res", prior="green-linear"), "tiny")
+    with pytest.raises(TrainingInputError, match=r"not supported with the green-linear prior"):
+        Trainer(served_prior, dataset.joined([more]), tmp_path, log=quiet)
 
 
 @pytest.fixture(scope="module")

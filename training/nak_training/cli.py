@@ -2,6 +2,7 @@
 
 python -m nak_training all --config training/configs/pointnet-reg.toml --data DATA
 python -m nak_training train|export|evaluate --config C --data DATA
+python -m nak_training train --config C --data DATA --more-data DATA2 DATA3   (sets of other seeds join train)
 python -m nak_training forms --config C --data DATA     (a reduced network's shipping forms, timed)
 python -m nak_training report --data DATA
 python -m nak_training failures --data DATA    (nonlinear failures against how deep the grasps push)
@@ -11,6 +12,7 @@ python -m nak_training forces --data DATA --model DIR   (grasp forces against th
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 from pathlib import Path
 
@@ -53,6 +55,14 @@ def main(argv: list[str] | None = None) -> int:
         command.add_argument(
             "--train-samples", type=int, help="train on this many samples (a learning curve's point; name gets -nN)"
         )
+        if name in ("train", "all"):
+            command.add_argument(
+                "--more-data",
+                type=Path,
+                nargs="+",
+                default=[],
+                help="sets of other seeds (same mesh and law) whose every sample joins the train split",
+            )
     report = commands.add_parser("report", help="the results table and the accuracy-latency figure")
     report.add_argument("--data", type=Path, required=True, help="the linear dataset the models were scored on")
     report.add_argument(
@@ -113,7 +123,9 @@ def run(command: str, config: TrainConfig, args: argparse.Namespace) -> None:
         run_dir = args.runs / config.name
         run_dir.mkdir(parents=True, exist_ok=True)
         trainer = ReducedTrainer if config.reduced else Trainer
-        trainer(config, dataset, run_dir, log=lambda m: print(m, flush=True), nak=Nak(args.nak, args.mesh)).run()
+        training_data = dataset.joined([open_dataset(path) for path in args.more_data])
+        log = functools.partial(print, flush=True)
+        trainer(config, training_data, run_dir, log=log, nak=Nak(args.nak, args.mesh)).run()
     if command in ("export", "all"):
         from .export import export
 

@@ -167,8 +167,22 @@ def parse_config(values: dict[str, Any], origin: str) -> TrainConfig:
 
 
 def load_config(path: Path, overrides: dict[str, Any] | None = None) -> TrainConfig:
+    return parse_config({**read_values(path), **(overrides or {})}, str(path))
+
+
+def read_values(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
+    """A configuration file's keys; `extends = "other.toml"` (beside it) takes that file's keys first,
+    so that a variant names only what it changes."""
     try:
         values = tomllib.loads(path.read_text())
     except (OSError, tomllib.TOMLDecodeError) as e:
         raise TrainingInputError(path, f"unreadable configuration ({e})") from e
-    return parse_config({**values, **(overrides or {})}, str(path))
+    base = values.pop("extends", None)
+    if base is None:
+        return values
+    if not isinstance(base, str):
+        raise TrainingInputError(path, f"extends = {base!r}: expected the file name of another configuration")
+    parent = (path.parent / base).resolve()
+    if parent in seen or parent == path.resolve():
+        raise TrainingInputError(path, f"extends {base}, which leads back here: a circle")
+    return {**read_values(parent, (*seen, path.resolve())), **values}

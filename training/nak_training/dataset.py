@@ -9,6 +9,7 @@ skipped, as `nak eval` does; a chunk whose tensor does not match its JSON is ref
 from __future__ import annotations
 
 import json
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -87,6 +88,8 @@ class Dataset:
     root: Path
     info: dict[str, Any]
     mesh: Mesh
+    # Sets of other seeds whose every sample joins this one's train split when it trains (`joined`).
+    more: tuple[Dataset, ...] = ()
 
     @property
     def regime(self) -> str:
@@ -121,9 +124,10 @@ class Dataset:
 
     def load(self, split: str, subsets: tuple[str, ...] = SUBSETS, chunks: list[int] | None = None) -> Split:
         """Every complete, successfully solved sample of `split` in `subsets` (of `chunks` only, when
-        given: a set still being made is read as it stood at one moment)."""
-        if split not in SPLITS:
-            raise TrainingInputError(self.root, f"unknown split {split!r}: expected one of {SPLITS}")
+        given: a set still being made is read as it stood at one moment). Split "all" takes every split:
+        a held-out set, or a set that only adds training samples."""
+        if split not in SPLITS + ("all",):
+            raise TrainingInputError(self.root, f"unknown split {split!r}: expected one of {SPLITS} or 'all'")
         samples: list[Sample] = []
         fields: list[np.ndarray] = []
         for chunk in self.complete_chunks() if chunks is None else chunks:
@@ -134,7 +138,7 @@ class Dataset:
             wanted = [
                 i
                 for i, r in enumerate(records)
-                if r.get("split") == split and r.get("subset") in subsets and not is_failed(r)
+                if split in ("all", r.get("split")) and r.get("subset") in subsets and not is_failed(r)
             ]
             if not wanted:
                 continue
@@ -147,6 +151,26 @@ class Dataset:
                 self.root, f"no complete samples in split {split!r} for subsets {list(subsets)} (nak datagen resumes)"
             )
         return Split(samples, torch.from_numpy(np.stack(fields)))
+
+    def joined(self, more: list[Dataset]) -> Dataset:
+        """This set, training on every sample of `more` too: each must be another seed (the same seed
+        would be the same grasps twice) of the same mesh, regime and law."""
+        mine = (self.mesh.content_hash, self.regime, self.volumetric_law)
+        seeds = {self.seed: self.root}
+        for other in more:
+            theirs = (other.mesh.content_hash, other.regime, other.volumetric_law)
+            if theirs != mine:
+                raise TrainingInputError(
+                    other.root,
+                    f"is mesh {theirs[0][:12]}, {theirs[1]}, law {theirs[2]}; {self.root} is mesh {mine[0][:12]}, "
+                    f"{mine[1]}, law {mine[2]}: only sets of one mesh, regime and law train together",
+                )
+            if other.seed in seeds:
+                raise TrainingInputError(
+                    other.root, f"has seed {other.seed}, as {seeds[other.seed]} has: the same grasps twice"
+                )
+            seeds[other.seed] = other.root
+        return dataclasses.replace(self, more=tuple(more))
 
     def _chunk_field(self, chunk: int, count: int) -> np.ndarray:
         path = self.root / f"chunk-{chunk:05d}.safetensors"

@@ -228,6 +228,8 @@ def provenance(config: TrainConfig, dataset: Dataset, summary: dict[str, Any], s
         "val_samples": int(summary["val_samples"]),
         # Trained while the set was still being made: the chunks it had, to retrain on the same samples.
         **({"dataset_chunks": summary["chunks"]} if "chunks" in summary else {}),
+        # Sets of other seeds whose every sample joined the train split.
+        **({"more_data": summary["more_data"]} if "more_data" in summary else {}),
         "steps": int(summary["steps"]),
         "parameters": int(summary["parameters"]),
         "training_time_s": float(summary["training_time_s"]),

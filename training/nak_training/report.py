@@ -8,6 +8,7 @@ Everything is read from the model manifests' [metrics] (written by `evaluate`) o
 
 from __future__ import annotations
 
+import json
 import shutil
 import tempfile
 import tomllib
@@ -73,6 +74,9 @@ class Entry:
     regime: str = "linear"
     prior: str = "kelvinlet"
     train_samples: int = 0
+    # The training configuration but for its name and sample count: models trained alike on different
+    # amounts of data share it ("" when the model directory has no config.toml).
+    recipe: str = ""
 
 
 def read_models(roots: list[Path]) -> list[Entry]:
@@ -93,9 +97,19 @@ def read_models(roots: list[Path]) -> list[Entry]:
                 regime=manifest["model"]["regime"],
                 prior=manifest["prior"].get("model", "kelvinlet"),
                 train_samples=int(provenance.get("train_samples", 0)),
+                recipe=recipe(manifest_path.parent / str(provenance.get("config", "config.toml"))),
             )
         )
     return entries
+
+
+def recipe(config_path: Path) -> str:
+    if not config_path.is_file():
+        return ""
+    config = tomllib.loads(config_path.read_text())
+    for key in ("name", "train_samples"):
+        config.pop(key, None)
+    return json.dumps(config, sort_keys=True)
 
 
 def baseline(
@@ -278,14 +292,23 @@ def curve_point(name: str) -> bool:
 
 def learning_curve(entries: list[Entry], path: Path) -> list[str]:
     """Test DCM against the number of training samples for configurations trained at several sizes
-    (`--train-samples N` names them `<config>-nN`); figure and table lines, empty without any."""
+    (`--train-samples N` names them `<config>-nN`; a model of another name trained alike, on more
+    data, joins its curve); figure and table lines, empty without any."""
     curves: dict[str, list[Entry]] = {}
     for e in entries:
         if curve_point(e.name):
             curves.setdefault(e.name.rpartition("-n")[0], [])
     for base in curves:
+        own = next((e for e in entries if e.name == base), None)
         curves[base] = sorted(
-            (e for e in entries if e.name == base or e.name.startswith(f"{base}-n")), key=lambda e: e.train_samples
+            (
+                e
+                for e in entries
+                if e.name == base
+                or e.name.startswith(f"{base}-n")
+                or (own is not None and own.recipe != "" and (e.recipe, e.regime) == (own.recipe, own.regime))
+            ),
+            key=lambda e: e.train_samples,
         )
     if not curves:
         return []
@@ -294,7 +317,10 @@ def learning_curve(entries: list[Entry], path: Path) -> list[str]:
     for base, points in curves.items():
         xs, ys = [e.train_samples for e in points], [e.metrics["dcm_combined"] for e in points]
         ax.plot(xs, ys, marker="o", label=base)
-        lines.append(f"| `{base}` | " + ", ".join(f"{x:,} → {y:.2f}" for x, y in zip(xs, ys, strict=True)) + " |")
+        named = [f" (`{e.name}`)" if e.name != base and not e.name.startswith(f"{base}-n") else "" for e in points]
+        lines.append(
+            f"| `{base}` | " + ", ".join(f"{x:,} → {y:.2f}{n}" for x, y, n in zip(xs, ys, named, strict=True)) + " |"
+        )
     ax.set_xscale("log", base=2)
     labels = ("training samples", "DCM (%), volume form, scored samples", "Accuracy against training data")
     save(fig, ax, path, labels, legend_size=7)

@@ -66,6 +66,13 @@ def dcm(truth: torch.Tensor, estimate: torch.Tensor, volumes: torch.Tensor) -> f
     return float(100.0 * (1.0 - relative_errors(truth, estimate, volumes).mean()))
 
 
+def join(splits: list[Split]) -> Split:
+    """The samples of `splits` one after another (a single split is returned as it is)."""
+    if len(splits) == 1:
+        return splits[0]
+    return Split([s for split in splits for s in split.samples], torch.cat([split.fields for split in splits]))
+
+
 def spread(split: Split, count: int) -> Split:
     """`count` samples spread evenly over `split` (single-grasper samples come first in a dataset)."""
     keep = torch.linspace(0, len(split) - 1, min(count, len(split))).round().long().unique()
@@ -95,7 +102,10 @@ class Batch:
 class Run:
     """What every training run shares: seeds, the train/val splits, the prior's ε (fitted once and kept
     in state.json), AdamW with warm-up and cosine decay, progress with ETA, model selection on val,
-    checkpoints and resume. Subclasses build `self.model` and define a step and the val score."""
+    checkpoints and resume. Subclasses build `self.model` and define a step and the val score.
+
+    The sets `dataset.more` (other seeds) add every sample to the train split; val and test stay the
+    dataset's own, so that runs with and without them are selected and compared on the same samples."""
 
     model: torch.nn.Module
 
@@ -103,13 +113,24 @@ class Run:
         self, config: TrainConfig, dataset: Dataset, run_dir: Path, log: Any = print, nak: Nak | None = None
     ) -> None:
         self.config, self.dataset, self.run_dir, self.log, self.nak = config, dataset, run_dir, log, nak
+        self.more = dataset.more
+        if self.more and config.method == "res" and config.prior != KELVINLET:
+            # nak writes a served prior's fields per split of one set (served.py); joined sets have no such split.
+            raise TrainingInputError(
+                self.more[0].root,
+                f"more data is not supported with the {config.prior} prior (served by nak per split of one set)",
+            )
         torch.set_num_threads(config.threads)
         torch.manual_seed(config.seed)
         self.mesh = dataset.mesh
         self.generator = torch.Generator().manual_seed(config.seed)
         # A set still being made is read as it stood now; its summary names the chunks it had.
         self.chunks = dataset.complete_chunks()
-        self.train = dataset.load("train", config.subsets, self.chunks)
+        self.more_chunks = [m.complete_chunks() for m in self.more]
+        self.train = join(
+            [dataset.load("train", config.subsets, self.chunks)]
+            + [m.load("all", config.subsets, c) for m, c in zip(self.more, self.more_chunks, strict=True)]
+        )
         if config.train_samples:
             self.train = spread(self.train, config.train_samples)
         self.val = spread(dataset.load("val", config.subsets, self.chunks), config.val_samples)
@@ -117,6 +138,8 @@ class Run:
             f"{config.name}: {config.architecture} ({config.size}) {config.method}, {len(self.train)} train / "
             f"{len(self.val)} val samples ({config.subset}), mesh {self.mesh.name} {self.mesh.node_count} nodes"
         )
+        for m, c in zip(self.more, self.more_chunks, strict=True):
+            self.log(f"  train adds every sample of {m.root} (seed {m.seed}, {len(c)} of {m.chunk_count()} chunks)")
         state = self._load_state()
         if state is None:
             if config.epsilon == "fit":
@@ -301,20 +324,41 @@ class Run:
             "train_samples": len(self.train),
             "val_samples": len(self.val),
             **({"chunks": self.chunks} if len(self.chunks) < self.dataset.chunk_count() else {}),
+            **({"more_data": self._more_description()} if self.more else {}),
             "parameters": parameter_count(self.model),
             "history": self.history,
         }
         (self.run_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
         return summary
 
-    def _data_description(self) -> dict[str, int]:
-        """What a run's data is, for telling it from another set on resume: seed, size, train samples."""
+    def _data_description(self) -> dict[str, Any]:
+        """What a run's data is, for telling it from another set on resume: seed, size, train samples
+        (and the seeds and sizes of the sets that add to it)."""
         info = self.dataset.info
         return {
             "seed": self.dataset.seed,
             "samples": int(info["single"]) + int(info["multi"]),
             "train_samples": len(self.train),
+            **(
+                {"more": [{k: d[k] for k in ("seed", "single", "multi")} for d in self._more_description()]}
+                if self.more
+                else {}
+            ),
         }
+
+    def _more_description(self) -> list[dict[str, Any]]:
+        """Each added set as the manifest records it: where, seed, size, and the chunks it had if
+        it was still being made (to retrain on the same samples)."""
+        return [
+            {
+                "dataset": str(m.root),
+                "seed": m.seed,
+                "single": int(m.info["single"]),
+                "multi": int(m.info["multi"]),
+                **({"chunks": c} if len(c) < m.chunk_count() else {}),
+            }
+            for m, c in zip(self.more, self.more_chunks, strict=True)
+        ]
 
     def _checkpoint(self) -> None:
         checkpoint = {
@@ -336,8 +380,11 @@ class Run:
         tmp.replace(self.run_dir / "checkpoint.pt")
 
 
-def describe_data(data: dict[str, int]) -> str:
-    return f"{data['train_samples']} train samples of a {data['samples']}-sample set of seed {data['seed']}"
+def describe_data(data: dict[str, Any]) -> str:
+    more = "".join(
+        f" and all of a {m['single'] + m['multi']}-sample set of seed {m['seed']}" for m in data.get("more", [])
+    )
+    return f"{data['train_samples']} train samples of a {data['samples']}-sample set of seed {data['seed']}{more}"
 
 
 class Trainer(Run):
