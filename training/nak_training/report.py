@@ -417,7 +417,8 @@ def write_report(
         held_out = open_dataset(nonlinear_data).info
         text += [
             "Nonlinear networks: trained on the paper-size set (`nak datagen --regime nonlinear --preset paper",
-            "--seed 0`) and scored, like the nonlinear baselines, on every converged sample of a held-out set of",
+            "--seed 0`; those named `*-more-nl` also on two more sets of other seeds, docs/training.md) and",
+            "scored, like the nonlinear baselines, on every converged sample of a held-out set of",
             f"a seed training never saw, `{nonlinear_data}` (`nak datagen --regime nonlinear --single",
             f"{held_out['single']} --multi {held_out['multi']} --seed {held_out['seed']}`; failed solves left out).",
         ]
@@ -476,7 +477,8 @@ def write_report(
             "## Accuracy against training data",
             "",
             "The same configuration trained on fewer samples spread over the train split",
-            "(`scripts/nak-train all --config C --train-samples N`; their manifests in `table3/curve/`):",
+            "(`scripts/nak-train all --config C --train-samples N`; their manifests in `table3/curve/`), and",
+            "on more (`scripts/nak-train train --more-data DIR…`; the model's name beside its point):",
             "",
             *curve,
             "",
