@@ -8,8 +8,8 @@ skipped, as `nak eval` does; a chunk whose tensor does not match its JSON is ref
 
 from __future__ import annotations
 
-import json
 import dataclasses
+import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -184,6 +184,13 @@ class Dataset:
             got = "missing" if field is None else f"{field.dtype} {field.shape}"
             raise TrainingInputError(path, f"displacement is {got}; expected float32 {expected}")
         return field
+
+
+def join(splits: list[Split]) -> Split:
+    """The samples of `splits` one after another (a single split is returned as it is, uncopied)."""
+    if len(splits) == 1:
+        return splits[0]
+    return Split([s for split in splits for s in split.samples], torch.cat([split.fields for split in splits]))
 
 
 def is_failed(record: dict[str, Any]) -> bool:

@@ -20,7 +20,7 @@ from typing import Any
 import torch
 
 from .config import TrainConfig
-from .dataset import Dataset, Mesh, Split
+from .dataset import Dataset, Mesh, Split, join
 from .errors import TrainingInputError
 from .kelvinlet import Prior, pad_points
 from .models import Grasped, SetNet, build, parameter_count
@@ -66,13 +66,6 @@ def dcm(truth: torch.Tensor, estimate: torch.Tensor, volumes: torch.Tensor) -> f
     return float(100.0 * (1.0 - relative_errors(truth, estimate, volumes).mean()))
 
 
-def join(splits: list[Split]) -> Split:
-    """The samples of `splits` one after another (a single split is returned as it is)."""
-    if len(splits) == 1:
-        return splits[0]
-    return Split([s for split in splits for s in split.samples], torch.cat([split.fields for split in splits]))
-
-
 def spread(split: Split, count: int) -> Split:
     """`count` samples spread evenly over `split` (single-grasper samples come first in a dataset)."""
     keep = torch.linspace(0, len(split) - 1, min(count, len(split))).round().long().unique()
@@ -113,11 +106,10 @@ class Run:
         self, config: TrainConfig, dataset: Dataset, run_dir: Path, log: Any = print, nak: Nak | None = None
     ) -> None:
         self.config, self.dataset, self.run_dir, self.log, self.nak = config, dataset, run_dir, log, nak
-        self.more = dataset.more
-        if self.more and config.method == "res" and config.prior != KELVINLET:
+        if dataset.more and config.method == "res" and config.prior != KELVINLET:
             # nak writes a served prior's fields per split of one set (served.py); joined sets have no such split.
             raise TrainingInputError(
-                self.more[0].root,
+                dataset.more[0].root,
                 f"more data is not supported with the {config.prior} prior (served by nak per split of one set)",
             )
         torch.set_num_threads(config.threads)
@@ -126,10 +118,11 @@ class Run:
         self.generator = torch.Generator().manual_seed(config.seed)
         # A set still being made is read as it stood now; its summary names the chunks it had.
         self.chunks = dataset.complete_chunks()
-        self.more_chunks = [m.complete_chunks() for m in self.more]
+        # Each added set with the chunks it had, read as it stood now like the first.
+        self.more = [(m, m.complete_chunks()) for m in dataset.more]
         self.train = join(
             [dataset.load("train", config.subsets, self.chunks)]
-            + [m.load("all", config.subsets, c) for m, c in zip(self.more, self.more_chunks, strict=True)]
+            + [m.load("all", config.subsets, chunks) for m, chunks in self.more]
         )
         if config.train_samples:
             self.train = spread(self.train, config.train_samples)
@@ -138,7 +131,7 @@ class Run:
             f"{config.name}: {config.architecture} ({config.size}) {config.method}, {len(self.train)} train / "
             f"{len(self.val)} val samples ({config.subset}), mesh {self.mesh.name} {self.mesh.node_count} nodes"
         )
-        for m, c in zip(self.more, self.more_chunks, strict=True):
+        for m, c in self.more:
             self.log(f"  train adds every sample of {m.root} (seed {m.seed}, {len(c)} of {m.chunk_count()} chunks)")
         state = self._load_state()
         if state is None:
@@ -357,7 +350,7 @@ class Run:
                 "multi": int(m.info["multi"]),
                 **({"chunks": c} if len(c) < m.chunk_count() else {}),
             }
-            for m, c in zip(self.more, self.more_chunks, strict=True)
+            for m, c in self.more
         ]
 
     def _checkpoint(self) -> None:
