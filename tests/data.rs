@@ -125,6 +125,17 @@ fn eval_scores_the_exact_model_at_100_and_writes_json() {
         let combined = &report["subsets"]["combined"];
         assert_eq!(combined["samples"], 20);
         let dcm = combined["dcm"].as_f64().unwrap();
+        // Each scored sample once, whose errors average to the DCM.
+        let samples = report["samples"].as_array().unwrap();
+        let mut indices: Vec<u64> = samples.iter().map(|s| s["index"].as_u64().unwrap()).collect();
+        indices.sort_unstable();
+        assert_eq!(indices, (0..20).collect::<Vec<_>>());
+        let mean_error = samples.iter().map(|s| s["volume"].as_f64().unwrap()).sum::<f64>() / 20.0;
+        assert!(
+            (100.0 * (1.0 - mean_error) - dcm).abs() < 1e-9,
+            "{mean_error} against {dcm}"
+        );
+        assert_eq!(samples.iter().filter(|s| s["subset"] == "multi").count(), 8);
         let forces = &report["grasp_forces"]["combined"];
         // 12 single-grasper and 8 two-grasper samples.
         assert_eq!(forces["grasps"], 28, "{report}");

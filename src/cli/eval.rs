@@ -1,5 +1,6 @@
-//! `nak eval`: DCM of a model on a dataset split, per subset, on screen and as JSON, and the time
-//! the serving engine takes per request, measured one request at a time after the scoring pass.
+//! `nak eval`: DCM of a model on a dataset split, per subset, on screen and as JSON (with each
+//! scored sample's errors), and the time the serving engine takes per request, measured one request
+//! at a time after the scoring pass.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -22,12 +23,21 @@ pub struct EvalArgs {
     /// Which samples: train, val, test or all.
     #[arg(long, default_value = "test")]
     split: String,
-    /// Write the results as JSON here.
+    /// Write the results as JSON here: per subset, and each scored sample's errors.
     #[arg(long)]
     output: Option<PathBuf>,
     /// Requests of the split (spread evenly over it) timed one at a time after scoring (0: no timing).
     #[arg(long, default_value_t = 200)]
     latency_samples: usize,
+}
+
+/// One scored sample in the JSON report, so that where a model misses can be looked up by grasp.
+#[derive(serde::Serialize)]
+struct ScoredSample {
+    index: u64,
+    subset: String,
+    #[serde(flatten)]
+    error: SampleError,
 }
 
 /// Per-stage engine time of requests run one at a time (no other request competing for the cores).
@@ -165,6 +175,7 @@ pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
     let mut errors: BTreeMap<String, Vec<SampleError>> = BTreeMap::new();
     let mut force_errors: BTreeMap<String, Vec<GraspForceError>> = BTreeMap::new();
     let mut failed = Vec::new();
+    let mut per_sample: Vec<ScoredSample> = Vec::new();
     let mut timed: Vec<Request> = Vec::new();
     let in_split = |s: &dataset::SampleRecord| args.split == "all" || s.split == args.split;
     // Long nonlinear runs are scored while they are still being generated: complete chunks only.
@@ -184,7 +195,7 @@ pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
                 .filter(|(s, _)| in_split(s) && !s.failed())
                 .map(|(s, _)| request_of(s)),
         );
-        let scored: Vec<(String, SampleError, Vec<GraspForceError>)> = samples
+        let scored: Vec<(&dataset::SampleRecord, SampleError, Vec<GraspForceError>)> = samples
             .par_iter()
             .filter(|(s, _)| in_split(s) && !s.failed())
             .map(|(sample, truth)| {
@@ -198,7 +209,7 @@ pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
                     _ => Vec::new(),
                 };
                 Ok((
-                    sample.subset.clone(),
+                    sample,
                     dcm::sample_error(truth, &prediction.displacements, &mesh.nodal_volumes),
                     forces,
                 ))
@@ -210,11 +221,16 @@ pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
                 .filter(|(s, _)| in_split(s) && s.failed())
                 .map(|(s, _)| s.index),
         );
-        for (subset, e, f) in scored {
-            for key in ["combined".to_owned(), subset] {
-                errors.entry(key.clone()).or_default().push(e);
-                force_errors.entry(key).or_default().extend(&f);
+        for (sample, e, f) in scored {
+            for key in ["combined", sample.subset.as_str()] {
+                errors.entry(key.to_owned()).or_default().push(e);
+                force_errors.entry(key.to_owned()).or_default().extend(&f);
             }
+            per_sample.push(ScoredSample {
+                index: sample.index,
+                subset: sample.subset.clone(),
+                error: e,
+            });
         }
     }
     let results: BTreeMap<String, Summary> = errors
@@ -290,7 +306,7 @@ pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
         let json = serde_json::json!({
             "model": args.model, "data": args.data, "split": args.split, "seed": info.seed, "regime": info.regime,
             "mesh_hash": info.mesh_hash, "subsets": results, "grasp_forces": forces,
-            "failed_samples": failed,
+            "failed_samples": failed, "samples": per_sample,
             "latency_us": latency, "threads": rayon::current_num_threads(),
         });
         std::fs::write(path, serde_json::to_string_pretty(&json)? + "\n")

@@ -6,7 +6,7 @@
 use serde::Serialize;
 
 /// Relative errors of one sample.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct SampleError {
     /// ‖u_true − û‖_{L2(Ω)} / ‖u_true‖_{L2(Ω)}, ‖u‖² ≈ Σ V_n |u_n|².
     pub volume: f64,

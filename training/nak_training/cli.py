@@ -7,6 +7,7 @@ python -m nak_training forms --config C --data DATA     (a reduced network's shi
 python -m nak_training report --data DATA
 python -m nak_training failures --data DATA    (nonlinear failures against how deep the grasps push)
 python -m nak_training forces --data DATA --model DIR   (grasp forces against the FEM's, and their cost)
+python -m nak_training misses --data DATA --model DIR   (a network's error against how deep the grasps push)
 """
 
 from __future__ import annotations
@@ -81,6 +82,12 @@ def main(argv: list[str] | None = None) -> int:
     forces.add_argument("--mesh", type=Path, default=DEFAULT_MESH)
     forces.add_argument("--out", type=Path, default=Path("docs/reports/forces"))
     forces.add_argument("--prior", default="green-tangent", choices=["green-tangent", "green-linear"])
+    missed = commands.add_parser("misses", help="a network's error by how deep the grasps push, sample by sample")
+    missed.add_argument("--data", type=Path, required=True, help="a nonlinear dataset (every sample is scored)")
+    missed.add_argument("--model", required=True, help="a model directory, or kelvinlet, green-linear or green-tangent")
+    missed.add_argument("--nak", type=Path, default=DEFAULT_NAK)
+    missed.add_argument("--mesh", type=Path, default=DEFAULT_MESH)
+    missed.add_argument("--figure", type=Path, help="also draw every sample's error against its push (PNG)")
     args = parser.parse_args(argv)
     try:
         if args.command == "forces":
@@ -93,6 +100,11 @@ def main(argv: list[str] | None = None) -> int:
             from .failures import report as failure_report
 
             print(failure_report(args.data))
+            return 0
+        if args.command == "misses":
+            from .misses import report as misses_report
+
+            print(misses_report(args.data, args.model, args.nak, args.mesh, args.figure))
             return 0
         if args.command == "report":
             from .report import write_report

@@ -22,12 +22,18 @@ from .served import Nak
 
 
 def nak_eval(
-    nak: Path, data: Path, model: str, mesh: Path, models_root: Path | None, split: str = "test"
+    nak: Path,
+    data: Path,
+    model: str,
+    mesh: Path,
+    models_root: Path | None,
+    split: str = "test",
+    flags: tuple[str, ...] = (),
 ) -> dict[str, Any]:
-    """Runs `nak eval` and returns its JSON report."""
+    """Runs `nak eval` (with `flags`, e.g. `--green-tangent`) and returns its JSON report."""
     with tempfile.TemporaryDirectory() as tmp:
         output = Path(tmp) / "eval.json"
-        args = ["eval", "--data", str(data), "--model", model, "--split", split, "--output", str(output)]
+        args = ["eval", "--data", str(data), "--model", model, "--split", split, "--output", str(output), *flags]
         if models_root is not None:
             args += ["--models", str(models_root)]
         print(Nak(nak, mesh).run(*args), end="")
@@ -68,26 +74,36 @@ def force_metrics_of(report: dict[str, Any]) -> dict[str, Any]:
     return metrics
 
 
-def evaluate(model_dir: Path, data: Path, nak: Path, mesh: Path, split: str = "test") -> dict[str, Any]:
-    """Scores the model in `model_dir` on `split` of `data` and writes its [metrics] (and, for a model
-    with learned forces, their error in [forces]); returns the metrics."""
+def read_manifest(model_dir: Path) -> dict[str, Any]:
+    """The model directory's manifest.toml, refused with its path when unreadable."""
     manifest_path = model_dir / "manifest.toml"
     try:
-        manifest = tomllib.loads(manifest_path.read_text())
+        return tomllib.loads(manifest_path.read_text())
     except (OSError, tomllib.TOMLDecodeError) as e:
         raise TrainingInputError(manifest_path, f"unreadable manifest ({e})") from e
-    name = manifest["model"]["name"]
+
+
+def eval_model_dir(model_dir: Path, data: Path, nak: Path, mesh: Path, split: str) -> dict[str, Any]:
+    """`nak eval`'s JSON report of the model in `model_dir` on `split` of `data`."""
+    name = read_manifest(model_dir)["model"]["name"]
     # nak loads every model under --models: give it a directory holding only this one.
     with tempfile.TemporaryDirectory() as alone:
         (Path(alone) / model_dir.name).symlink_to(model_dir.resolve(), target_is_directory=True)
-        report = nak_eval(nak, data, name, mesh, Path(alone), split)
+        return nak_eval(nak, data, name, mesh, Path(alone), split)
+
+
+def evaluate(model_dir: Path, data: Path, nak: Path, mesh: Path, split: str = "test") -> dict[str, Any]:
+    """Scores the model in `model_dir` on `split` of `data` and writes its [metrics] (and, for a model
+    with learned forces, their error in [forces]); returns the metrics."""
+    manifest = read_manifest(model_dir)
+    report = eval_model_dir(model_dir, data, nak, mesh, split)
     kept = {k: v for k, v in manifest.get("metrics", {}).items() if k == "val_dcm" or k.startswith(CEILING_PREFIX)}
     metrics = {**kept, **metrics_of(report)}
     written = {k: v for k, v in metrics.items() if v is not None}
     manifest["metrics"] = written
     if "forces" in manifest:
         manifest["forces"] = {"mode": manifest["forces"]["mode"], **force_metrics_of(report)}
-    manifest_path.write_text(MANIFEST_HEADER + tomli_w.dumps(manifest))
+    (model_dir / "manifest.toml").write_text(MANIFEST_HEADER + tomli_w.dumps(manifest))
     return written
 
 

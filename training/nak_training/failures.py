@@ -1,7 +1,7 @@
 """Where nonlinear ground truth fails: each sample's deepest inward push (the grasp displacement along
 the inward surface normal, mm, the largest over its graspers) and the failure rate in bins of it. A
-surface patch pushed centimetres into the organ compresses the tissue beneath it, where the
-Mooney–Rivlin law's volumetric term (κ/2)(J − 1)² puts no barrier before J = 0.
+surface patch pushed centimetres into the organ compresses the tissue beneath it hardest, and that is
+where Newton stalls (docs/finite-elements.md, "The paper-size set").
 """
 
 from __future__ import annotations
@@ -24,6 +24,8 @@ class Outcome:
     push_mm: float
     failed: bool
     reason: str
+    # Load steps the solver undid because they ended on another equilibrium branch.
+    branch_jumps: int = 0
 
 
 @dataclass(frozen=True)
@@ -66,7 +68,8 @@ def outcomes(root: Path) -> list[Outcome]:
             except (KeyError, TypeError, ValueError, IndexError) as e:
                 raise TrainingInputError(path, f"sample {record.get('index')}: malformed grasps ({e})") from e
             failure = str(record["solver"]["failure"]) if is_failed(record) else None
-            found.append(Outcome(int(record["index"]), max(pushes), failure is not None, why(failure or "")))
+            jumps = int((record.get("solver") or {}).get("branch_jumps", 0))
+            found.append(Outcome(int(record["index"]), max(pushes), failure is not None, why(failure or ""), jumps))
     if not found:
         raise TrainingInputError(root, "no generated chunks")
     return found
@@ -85,17 +88,20 @@ def failure_bins(found: list[Outcome], edges: tuple[float, ...] = EDGES_MM) -> l
     ]
 
 
+def span(low_mm: float, high_mm: float) -> str:
+    """A bin of the deepest inward push as a table row names it."""
+    if low_mm == -np.inf:
+        return f"< {high_mm:g} (pulls)"
+    if high_mm == np.inf:
+        return f"≥ {low_mm:g}"
+    return f"{low_mm:g}–{high_mm:g}"
+
+
 def report(root: Path) -> str:
     found = outcomes(root)
     lines = ["| deepest inward push (mm) | samples | failed | rate |", "|---|---|---|---|"]
     for b in failure_bins(found):
-        if b.low_mm == -np.inf:
-            span = f"< {b.high_mm:g} (pulls)"
-        elif b.high_mm == np.inf:
-            span = f"≥ {b.low_mm:g}"
-        else:
-            span = f"{b.low_mm:g}–{b.high_mm:g}"
-        lines.append(f"| {span} | {b.samples} | {b.failed} | {100 * b.rate:.1f} % |")
+        lines.append(f"| {span(b.low_mm, b.high_mm)} | {b.samples} | {b.failed} | {100 * b.rate:.1f} % |")
     failed = [o for o in found if o.failed]
     lines.append(f"| all | {len(found)} | {len(failed)} | {100 * len(failed) / len(found):.1f} % |")
     for o in failed:
