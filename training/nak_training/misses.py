@@ -73,7 +73,7 @@ def groups(edges: tuple[float, ...] = EDGES_MM) -> list[tuple[str, Callable[[Out
 def table(found: list[Miss]) -> str:
     """Per group of samples: samples and DCM of each subset and of both, and the group's share of the
     summed relative error (where the DCM's shortfall comes from)."""
-    total = sum(m.error for m in found)
+    total = sum(m.error for m in found) or 1.0  # every sample exact: every share is 0
     lines = [
         "| samples | single | DCM | two graspers | DCM | all | DCM | share of the error |",
         "|---|---:|---:|---:|---:|---:|---:|---:|",
