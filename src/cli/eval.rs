@@ -2,7 +2,7 @@
 //! scored sample's errors), and the time the serving engine takes per request, measured one request
 //! at a time after the scoring pass.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
@@ -172,7 +172,6 @@ pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
     let info = dataset_for(&args.data, engine)?;
     check_law(&info, &args.data, engine, &args.model)?;
     let mesh = engine.mesh();
-    let mut errors: BTreeMap<String, Vec<SampleError>> = BTreeMap::new();
     let mut force_errors: BTreeMap<String, Vec<GraspForceError>> = BTreeMap::new();
     let mut failed = Vec::new();
     let mut per_sample: Vec<ScoredSample> = Vec::new();
@@ -223,7 +222,6 @@ pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
         );
         for (sample, e, f) in scored {
             for key in ["combined", sample.subset.as_str()] {
-                errors.entry(key.to_owned()).or_default().push(e);
                 force_errors.entry(key.to_owned()).or_default().extend(&f);
             }
             per_sample.push(ScoredSample {
@@ -233,9 +231,18 @@ pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
             });
         }
     }
-    let results: BTreeMap<String, Summary> = errors
-        .iter()
-        .filter_map(|(k, v)| dcm::summarize(v).map(|s| (k.clone(), s)))
+    let mut subsets: BTreeSet<&str> = per_sample.iter().map(|s| s.subset.as_str()).collect();
+    subsets.insert("combined");
+    let results: BTreeMap<String, Summary> = subsets
+        .into_iter()
+        .filter_map(|subset| {
+            let errors: Vec<SampleError> = per_sample
+                .iter()
+                .filter(|s| subset == "combined" || s.subset == subset)
+                .map(|s| s.error)
+                .collect();
+            dcm::summarize(&errors).map(|s| (subset.to_owned(), s))
+        })
         .collect();
     if results.is_empty() {
         bail!("no samples in split {:?} of {}", args.split, args.data.display());

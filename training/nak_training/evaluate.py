@@ -83,20 +83,21 @@ def read_manifest(model_dir: Path) -> dict[str, Any]:
         raise TrainingInputError(manifest_path, f"unreadable manifest ({e})") from e
 
 
-def eval_model_dir(model_dir: Path, data: Path, nak: Path, mesh: Path, split: str) -> dict[str, Any]:
-    """`nak eval`'s JSON report of the model in `model_dir` on `split` of `data`."""
-    name = read_manifest(model_dir)["model"]["name"]
+def eval_model_dir(
+    model_dir: Path, name: str, data: Path, nak: Path, mesh: Path, split: str, flags: tuple[str, ...] = ()
+) -> dict[str, Any]:
+    """`nak eval`'s JSON report of the model `name` in `model_dir` on `split` of `data`."""
     # nak loads every model under --models: give it a directory holding only this one.
     with tempfile.TemporaryDirectory() as alone:
         (Path(alone) / model_dir.name).symlink_to(model_dir.resolve(), target_is_directory=True)
-        return nak_eval(nak, data, name, mesh, Path(alone), split)
+        return nak_eval(nak, data, name, mesh, Path(alone), split, flags)
 
 
 def evaluate(model_dir: Path, data: Path, nak: Path, mesh: Path, split: str = "test") -> dict[str, Any]:
     """Scores the model in `model_dir` on `split` of `data` and writes its [metrics] (and, for a model
     with learned forces, their error in [forces]); returns the metrics."""
     manifest = read_manifest(model_dir)
-    report = eval_model_dir(model_dir, data, nak, mesh, split)
+    report = eval_model_dir(model_dir, manifest["model"]["name"], data, nak, mesh, split)
     kept = {k: v for k, v in manifest.get("metrics", {}).items() if k == "val_dcm" or k.startswith(CEILING_PREFIX)}
     metrics = {**kept, **metrics_of(report)}
     written = {k: v for k, v in metrics.items() if v is not None}
