@@ -217,7 +217,12 @@ fn nonlinear_datagen_is_deterministic_resumable_and_shares_grasps_with_linear() 
         assert_eq!(std::fs::read(&sa.0).unwrap(), std::fs::read(&sb.0).unwrap());
         assert_eq!(std::fs::read(&sa.1).unwrap(), std::fs::read(&sb.1).unwrap());
     }
+    path_states_are_the_converged_load_steps(&a, &b);
     assert!(datagen_box(&linear, &cache, &[]).status.success());
+    assert!(
+        !dataset::path_states_path(&linear, 0).exists(),
+        "a linear solve has no load path"
+    );
     let (nonlinear_samples, linear_samples) = (samples(&a), samples(&linear));
     assert_eq!(nonlinear_samples.len(), 6);
     for ((n, n_field), (l, l_field)) in nonlinear_samples.iter().zip(&linear_samples) {
@@ -252,6 +257,50 @@ fn nonlinear_datagen_is_deterministic_resumable_and_shares_grasps_with_linear() 
         let size: f32 = l_field.iter().map(|x| x.abs()).fold(0.0, f32::max);
         assert!(difference > 1e-4 * size && difference < size, "{difference} vs {size}");
     }
+}
+
+/// Each chunk of `a` keeps, beside it, the converged states of its solves' load steps before the
+/// last: the same bytes in `b` (made the same way, one chunk resumed), one state per load step but
+/// the last of each sample, in order of load, its grasped nodes moved by that share of the grasp.
+fn path_states_are_the_converged_load_steps(a: &Path, b: &Path) {
+    let by_index: std::collections::BTreeMap<u64, (dataset::SampleRecord, Vec<f32>)> =
+        samples(a).into_iter().map(|s| (s.0.index, s)).collect();
+    let mut states = 0;
+    for chunk in 0..2 {
+        let bytes = std::fs::read(dataset::path_states_path(a, chunk)).unwrap();
+        assert_eq!(bytes, std::fs::read(dataset::path_states_path(b, chunk)).unwrap());
+        let st = safetensors::SafeTensors::deserialize(&bytes).unwrap();
+        let sample: Vec<i64> = bytemuck::pod_collect_to_vec(st.tensor("sample").unwrap().data());
+        let load: Vec<f64> = bytemuck::pod_collect_to_vec(st.tensor("load").unwrap().data());
+        let field: Vec<f32> = bytemuck::pod_collect_to_vec(st.tensor("displacement").unwrap().data());
+        let nodes = field.len() / 3 / sample.len();
+        for (record, _) in by_index.values().filter(|(r, _)| r.index / 3 == chunk as u64) {
+            let mine: Vec<usize> = (0..sample.len())
+                .filter(|&p| sample[p] as u64 == record.index)
+                .collect();
+            let steps = record.solver.as_ref().unwrap().stats.load_steps;
+            assert_eq!(mine.len(), steps - 1, "sample {}", record.index);
+            let loads: Vec<f64> = mine.iter().map(|&p| load[p]).collect();
+            assert!(loads.windows(2).all(|w| w[0] < w[1]) && loads.iter().all(|t| 0.0 < *t && *t < 1.0));
+            for &p in &mine {
+                for (node, u) in record.prescribed() {
+                    for k in 0..3 {
+                        let got = field[(p * nodes + node as usize) * 3 + k] as f64;
+                        assert!(
+                            (got - load[p] * u[k]).abs() < 1e-6,
+                            "state {p} node {node}: {got} vs {}",
+                            load[p] * u[k]
+                        );
+                    }
+                }
+            }
+            states += mine.len();
+        }
+    }
+    assert!(
+        states >= 6,
+        "{states} states: every sample took more than one load step"
+    );
 }
 
 #[test]

@@ -324,17 +324,22 @@ fn newton_decreases_the_energy_and_converges_under_gravity_and_a_large_grasp() {
     }
 }
 
-/// Pushes the grasp face's centre node of a 30 mm cube (cells of 10 mm) 25 mm in, without gravity.
-fn deep_poke(elimination: Option<Elimination>) -> (Hyperelastic, Equilibrium) {
-    let m = mesh(&Fixture::grid(3));
-    let centre = m.node_sets["grasp_01"]
+/// The grasp face's centre node of the 30 mm cube.
+fn poked_node(m: &TetMesh) -> u32 {
+    m.node_sets["grasp_01"]
         .iter()
         .copied()
         .find(|&n| {
             let p = m.positions[n as usize];
             (p[1] - 0.01).abs() < 1e-9 && (p[2] - 0.01).abs() < 1e-9
         })
-        .unwrap();
+        .unwrap()
+}
+
+/// Pushes the grasp face's centre node of a 30 mm cube (cells of 10 mm) 25 mm in, without gravity.
+fn deep_poke(elimination: Option<Elimination>) -> (Hyperelastic, Equilibrium) {
+    let m = mesh(&Fixture::grid(3));
+    let centre = poked_node(&m);
     let options = NewtonOptions {
         elimination,
         ..NewtonOptions::default()
@@ -364,6 +369,40 @@ fn a_deep_poke_is_solved_with_feasible_steps_only() {
         }
         assert_eq!(result.stats.inverted_trials, 0, "{:?}", result.stats);
         assert!(solver.energy(&result.displacement, 0.0).is_some());
+    }
+}
+
+#[test]
+fn every_state_on_the_load_path_is_the_equilibrium_of_its_share_of_the_load() {
+    // `nak datagen` keeps the load steps' converged states as samples of their own loads: each must
+    // be what a solve of that load alone reaches. They end at the intermediate tolerance (a residual
+    // of 1e-3 of the load's scale), a whole solve tighter; measured here 1e-7 to 2.2e-5 (relative L2).
+    let (solver, result) = deep_poke(Some(Elimination::default()));
+    assert!(result.path.len() >= 2, "{} states", result.path.len());
+    let loads: Vec<f64> = result.path.iter().map(|s| s.load).collect();
+    assert!(
+        loads.windows(2).all(|w| w[0] < w[1]) && loads[0] > 0.0 && loads[loads.len() - 1] < 1.0,
+        "{loads:?}"
+    );
+    let (centre, start) = (
+        poked_node(&mesh(&Fixture::grid(3))),
+        vec![[0.0; 3]; solver.node_count()],
+    );
+    for state in &result.path {
+        let direct = solver
+            .solve(Load {
+                start: &start,
+                prescribed: &[(centre, [-0.025 * state.load, 0.0, 0.0])],
+                body_from: 0.0,
+                body_to: 0.0,
+            })
+            .unwrap();
+        let difference = relative_difference(&state.displacement, &direct.displacement);
+        assert!(
+            difference < 1e-4,
+            "load {}: {difference:.2e} from its own solve",
+            state.load
+        );
     }
 }
 

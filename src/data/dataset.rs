@@ -251,6 +251,55 @@ pub fn chunk_paths(dir: &Path, chunk: usize) -> (PathBuf, PathBuf) {
 }
 
 /// Writes one chunk; the JSON goes last, by rename, marking the chunk complete.
+/// A converged state on the way to a sample's whole grasp: its grasps moved by `load` times their
+/// displacements, and the organ's field then (f32, [N × 3]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct PathField {
+    pub sample: u64,
+    pub load: f64,
+    pub field: Vec<f32>,
+}
+
+/// Where a chunk's path states live, beside the chunk (`nak datagen`'s nonlinear solves write them).
+pub fn path_states_path(dir: &Path, chunk: usize) -> PathBuf {
+    dir.join(format!("chunk-{chunk:05}.path.safetensors"))
+}
+
+/// Writes a chunk's path states: `displacement` f32 [P, N, 3], `sample` i64 [P] (the sample each
+/// state is on the way to), `load` f64 [P]. Written before the chunk's JSON, which marks it complete.
+pub fn write_path_states(
+    dir: &Path,
+    chunk: usize,
+    node_count: usize,
+    states: &[PathField],
+) -> Result<(), DatasetError> {
+    let path = path_states_path(dir, chunk);
+    let flat: Vec<f32> = states.iter().flat_map(|s| s.field.iter().copied()).collect();
+    let samples: Vec<i64> = states.iter().map(|s| s.sample as i64).collect();
+    let loads: Vec<f64> = states.iter().map(|s| s.load).collect();
+    let view = |dtype, shape, bytes| TensorView::new(dtype, shape, bytes).map_err(|e| format(&path, e));
+    let tensors = [
+        (
+            "displacement",
+            view(
+                Dtype::F32,
+                vec![states.len(), node_count, 3],
+                bytemuck::cast_slice(&flat),
+            )?,
+        ),
+        (
+            "sample",
+            view(Dtype::I64, vec![states.len()], bytemuck::cast_slice(&samples))?,
+        ),
+        (
+            "load",
+            view(Dtype::F64, vec![states.len()], bytemuck::cast_slice(&loads))?,
+        ),
+    ];
+    let bytes = safetensors::serialize(tensors, None).map_err(|e| format(&path, e))?;
+    std::fs::write(&path, bytes).map_err(io(&path))
+}
+
 pub fn write_chunk(
     dir: &Path,
     chunk: usize,

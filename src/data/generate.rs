@@ -8,8 +8,8 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use rayon::prelude::*;
 
 use super::GraspSampler;
-use super::dataset::{self, DatasetError, DatasetInfo, SampleRecord, SolveRecord};
-use crate::fem::nonlinear::{SolveProfile, SolveStats};
+use super::dataset::{self, DatasetError, DatasetInfo, PathField, SampleRecord, SolveRecord};
+use crate::fem::nonlinear::{PathState, SolveProfile, SolveStats};
 use crate::fem::preload::Preloaded;
 use crate::fem::{FemError, GreenFunctions, nodal_forces, solve_dirichlet};
 use crate::mesh::TetMesh;
@@ -110,6 +110,22 @@ fn force_of(nodes: &[u32], forces: &[[f64; 3]], node: u32) -> [f64; 3] {
     nodes.iter().position(|&m| m == node).map_or([0.0; 3], |i| forces[i])
 }
 
+/// One sample's ground truth: its field and, for a nonlinear solve, the converged states of its
+/// load steps before the last.
+struct Solved {
+    field: Vec<f32>,
+    path: Vec<PathField>,
+}
+
+impl From<Vec<f32>> for Solved {
+    fn from(field: Vec<f32>) -> Self {
+        Self {
+            field,
+            path: Vec::new(),
+        }
+    }
+}
+
 fn write_field(field: &mut [f32], u: &[[f64; 3]]) {
     for (dst, src) in field.chunks_exact_mut(3).zip(u) {
         for k in 0..3 {
@@ -128,7 +144,7 @@ pub fn generate_linear(
 ) -> Result<Generated, DatasetError> {
     let direct = AtomicUsize::new(0);
     let mut generated = generate(mesh, info, dir, progress, |sample| {
-        linear_field(mesh, green, sample, &direct)
+        linear_field(mesh, green, sample, &direct).map(Solved::from)
     })?;
     generated.direct_solves = direct.load(Ordering::Relaxed);
     Ok(generated)
@@ -150,10 +166,12 @@ pub fn generate_nonlinear(
         let prescribed = sample.prescribed();
         let mut profile = SolveProfile::default();
         let mut failure_reason = None;
+        let mut path = Vec::new();
         let record = match preloaded.grasp(&prescribed) {
             Ok(equilibrium) => {
                 profile = equilibrium.profile;
                 write_field(&mut field, &equilibrium.displacement);
+                path = path_fields(sample.index, &equilibrium.path);
                 let held: Vec<u32> = prescribed.iter().map(|&(n, _)| n).collect();
                 sample.set_forces(|n| force_of(&held, &equilibrium.reactions, n));
                 SolveRecord {
@@ -182,10 +200,24 @@ pub fn generate_nonlinear(
             );
         }
         sample.solver = Some(record);
-        Ok(field)
+        Ok(Solved { field, path })
     })?;
     generated.nonlinear = tally.into_inner().unwrap_or_default();
     Ok(generated)
+}
+
+fn path_fields(sample: u64, path: &[PathState]) -> Vec<PathField> {
+    path.iter()
+        .map(|state| {
+            let mut field = vec![0.0; 3 * state.displacement.len()];
+            write_field(&mut field, &state.displacement);
+            PathField {
+                sample,
+                load: state.load,
+                field,
+            }
+        })
+        .collect()
 }
 
 /// The chunked, resumable driver both regimes share: draws each chunk's samples from (seed, index),
@@ -195,7 +227,7 @@ fn generate(
     info: &DatasetInfo,
     dir: &Path,
     progress: impl Fn(usize, usize) + Sync,
-    solve: impl Fn(&mut SampleRecord) -> Result<Vec<f32>, DatasetError> + Sync,
+    solve: impl Fn(&mut SampleRecord) -> Result<Solved, DatasetError> + Sync,
 ) -> Result<Generated, DatasetError> {
     if let Ok(existing) = dataset::read_info(dir)
         && existing != *info
@@ -238,7 +270,7 @@ fn generate(
         let mut samples: Vec<SampleRecord> = range_of(chunk)
             .map(|i| dataset::draw(&sampler, info, i as u64))
             .collect::<Result<_, _>>()?;
-        let fields: Vec<Vec<f32>> = samples
+        let solved: Vec<Solved> = samples
             .par_iter_mut()
             .with_max_len(1)
             .map(|s| {
@@ -247,6 +279,12 @@ fn generate(
                 f
             })
             .collect::<Result<_, _>>()?;
+        let (fields, paths): (Vec<Vec<f32>>, Vec<Vec<PathField>>) =
+            solved.into_iter().map(|s| (s.field, s.path)).unzip();
+        let states: Vec<PathField> = paths.into_iter().flatten().collect();
+        if !states.is_empty() {
+            dataset::write_path_states(dir, chunk, mesh.node_count(), &states)?;
+        }
         dataset::write_chunk(dir, chunk, mesh.node_count(), &samples, &fields)
     })?;
     result.chunks_written = pending.len();

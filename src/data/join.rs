@@ -103,7 +103,13 @@ pub fn join(shards: &[PathBuf], out: &Path) -> Result<Joined, DatasetError> {
         let dir = by_index[&(chunk % shards.len())];
         let (from, to) = (dataset::chunk_paths(dir, chunk), dataset::chunk_paths(out, chunk));
         // The tensors first, the JSON (which marks a chunk complete) last, as datagen writes them.
-        for (source, target) in [(from.0, to.0), (from.1, to.1)] {
+        // A nonlinear chunk's path states (written before its JSON too), where it has them.
+        let path_states = Some((
+            dataset::path_states_path(dir, chunk),
+            dataset::path_states_path(out, chunk),
+        ))
+        .filter(|(source, _)| source.is_file());
+        for (source, target) in [(from.0, to.0)].into_iter().chain(path_states).chain([(from.1, to.1)]) {
             if std::fs::hard_link(&source, &target).is_err() {
                 std::fs::copy(&source, &target).map_err(dataset::io(&source))?;
             }

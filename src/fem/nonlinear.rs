@@ -212,12 +212,24 @@ impl SolveProfile {
 #[derive(Debug, Clone)]
 pub struct Equilibrium {
     pub displacement: Vec<[f64; 3]>,
+    /// The converged states of the load steps before the last, in order: each the equilibrium of
+    /// its fraction of the load, to the intermediate tolerance. Equilibrium does not depend on the
+    /// path, so each is a sample of its own load for free (`nak datagen` keeps them beside a chunk).
+    pub path: Vec<PathState>,
     /// Force the constraints exert on each prescribed node, in the order given.
     pub reactions: Vec<[f64; 3]>,
     pub stats: SolveStats,
     pub profile: SolveProfile,
     pub iterations: Vec<Iteration>,
     pub seconds: f64,
+}
+
+/// A converged state on the way to the whole load.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PathState {
+    /// The fraction of the load reached (0 < load < 1).
+    pub load: f64,
+    pub displacement: Vec<[f64; 3]>,
 }
 
 /// The load path: the body force scales from `body_from` to `body_to` while prescribed nodes move
@@ -586,6 +598,7 @@ impl Hyperelastic {
         }
         let longest = self.options.max_load_step.clamp(1e-6, 1.0);
         let (mut done, mut step) = (0.0f64, initial_step.clamp(1e-6, longest));
+        let mut path = Vec::new();
         while done < 1.0 {
             let target = (done + step).min(1.0);
             let mut trial = u.clone();
@@ -623,6 +636,12 @@ impl Hyperelastic {
                     step = reached - done;
                     done = reached;
                     work.stats.load_steps += 1;
+                    if done < 1.0 {
+                        path.push(PathState {
+                            load: done,
+                            displacement: u.clone(),
+                        });
+                    }
                     if newton <= 4 {
                         step = (step * 1.5).min(longest);
                     }
@@ -658,6 +677,7 @@ impl Hyperelastic {
             .collect();
         Ok(Equilibrium {
             displacement: u,
+            path,
             reactions,
             stats: work.stats,
             profile: work.profile,

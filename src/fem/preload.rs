@@ -82,7 +82,7 @@ impl Preloaded {
     }
 
     /// Moves `grasped` nodes by the given displacements from the preloaded state (gravity stays on)
-    /// and returns the equilibrium with displacements relative to the preloaded state.
+    /// and returns the equilibrium with displacements (its path's too) relative to the preloaded state.
     pub fn grasp(&self, grasped: &[(u32, [f64; 3])]) -> Result<Equilibrium, FemError> {
         let prescribed: Vec<(u32, [f64; 3])> = grasped
             .iter()
@@ -94,9 +94,13 @@ impl Preloaded {
             body_from: 1.0,
             body_to: 1.0,
         })?;
-        for (u, r) in result.displacement.iter_mut().zip(&self.rest) {
-            for k in 0..3 {
-                u[k] -= r[k];
+        let states =
+            std::iter::once(&mut result.displacement).chain(result.path.iter_mut().map(|s| &mut s.displacement));
+        for state in states {
+            for (u, r) in state.iter_mut().zip(&self.rest) {
+                for k in 0..3 {
+                    u[k] -= r[k];
+                }
             }
         }
         Ok(result)

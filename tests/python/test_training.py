@@ -729,3 +729,51 @@ def test_a_learning_curve_point_trains_on_samples_spread_over_both_subsets(coars
     trainer = Trainer(config, open_dataset(coarse_data), tmp_path, log=quiet)
     assert len(trainer.train) == 12
     assert {s.subset for s in trainer.train.samples} == {"single", "multi"}
+
+
+BOX = ROOT / "tests" / "fixtures" / "box.msh"
+
+
+def test_load_path_states_train_as_samples_of_their_share_of_the_grasp(nak_binary: Path, tmp_path: Path) -> None:
+    data = tmp_path / "data"
+    args = ["datagen", "--mesh", str(BOX), "--regime", "nonlinear", "--single", "12", "--multi", "0", "--seed", "0"]
+    args += ["--chunk-size", "6", "--cache-dir", str(tmp_path / "cache"), "--out", str(data)]
+    subprocess.run([str(nak_binary), *args], check=True, capture_output=True)
+    dataset = open_dataset(data)
+    train = dataset.load("train")
+    states = dataset.load_path_states(train.samples, dataset.complete_chunks(), 0.3)
+    assert states is not None and len(states) >= len(train)
+    by_index = {s.index: (s, train.fields[i]) for i, s in enumerate(train.samples)}
+    for state, field in zip(states.samples, states.fields):
+        sample, whole = by_index[state.index]
+        # The grasped nodes sit where that share of the grasp puts them; the rest moves less than at
+        # the whole grasp, and not in proportion (the organ is nonlinear).
+        share = float(np.linalg.norm(state.displacements) / np.linalg.norm(sample.displacements))
+        assert 0.3 <= share < 1.0 and state.forces is None
+        assert np.allclose(state.displacements, share * sample.displacements)
+        assert torch.allclose(field[sample.nodes], torch.from_numpy(state.displacements).float(), atol=1e-6)
+        assert 0 < float(field.norm()) < float(whole.norm())
+    # Only the samples asked for, and only the states at the share asked for or more.
+    assert dataset.load_path_states(train.samples[:1], dataset.complete_chunks(), 0.3) is not None
+    assert dataset.load_path_states(train.samples, dataset.complete_chunks(), 0.999) is None
+    config = parse_config(
+        tiny_config(architecture="pod", method="base", modes=2, width=16, steps=4, val_every=2, path_states_from=0.3),
+        "tiny",
+    )
+    run = tmp_path / "run"
+    run.mkdir()
+    trainer = ReducedTrainer(config, dataset, run, log=quiet)
+    assert len(trainer.train) == len(train) + len(states) and trainer.path_states == len(states)
+    trainer.run()
+    summary = json.loads((run / "summary.json").read_text())
+    assert (summary["train_samples"], summary["path_states"]) == (len(train), len(states))
+    export(config, dataset, run, tmp_path / "models", log=quiet)
+    manifest = tomllib.loads((tmp_path / "models" / "tiny" / "manifest.toml").read_text())
+    assert manifest["provenance"]["path_states"] == len(states)
+    for bad, words in (
+        (dict(path_states_from=1.0), r"must be in \[0, 1\)"),
+        (dict(path_states_from=0.5, forces=True), "a network without forces"),
+        (dict(path_states_from=0.5, method="res", prior="green-linear"), "a network without forces"),
+    ):
+        with pytest.raises(TrainingInputError, match=words):
+            parse_config(tiny_config(architecture="pod", **bad), "tiny")

@@ -58,6 +58,10 @@ class TrainConfig:
     # POD from the first this many train targets (0: all): the S × S Gram matrix of the POD bounds how
     # many samples it can take, not how many the encoder may learn from.
     pod_samples: int = 0
+    # Train on the converged states of the train samples' load steps too (`nak datagen` keeps them
+    # beside each nonlinear chunk: the organ's equilibrium with the grasps moved by that share of their
+    # displacement), those at this share or more, in (0, 1); 0: none.
+    path_states_from: float = 0.0
     # Reduced networks: a second output, the force on each interaction point, trained on the data's
     # finite-element grasp forces with this weight on their mean relative error (docs/design.md §7).
     forces: bool = False
@@ -161,6 +165,16 @@ def parse_config(values: dict[str, Any], origin: str) -> TrainConfig:
         )
     if not 0.0 <= config.ema < 1.0:
         raise TrainingInputError(origin, f"ema = {config.ema!r}: must be in [0, 1) (0: no averaging)")
+    if not 0.0 <= config.path_states_from < 1.0:
+        raise TrainingInputError(
+            origin, f"path_states_from = {config.path_states_from!r}: must be in [0, 1) (0: no load-path states)"
+        )
+    if config.path_states_from and (config.forces or config.prior != "kelvinlet"):
+        # The states carry no grasp forces, and nak serves green-linear's and green-tangent's fields per
+        # sample of a split, not per state.
+        raise TrainingInputError(
+            origin, "path_states_from needs a network without forces on no prior or the Kelvinlet's"
+        )
     if config.pod_samples < 0:
         raise TrainingInputError(origin, f"pod_samples = {config.pod_samples!r}: must be 0 (all) or more")
     return config

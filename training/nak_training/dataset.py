@@ -2,7 +2,8 @@
 
 A dataset directory holds `dataset.json`, `mesh.safetensors` (the mesh's geometry as nak loaded it)
 and chunks `chunk-NNNNN.safetensors` (`displacement` f32 [B, N, 3]) with `chunk-NNNNN.json` (per
-sample: index, subset, split, grasps). A chunk without its JSON is still being generated and is
+sample: index, subset, split, grasps), and for nonlinear chunks `chunk-NNNNN.path.safetensors` (the
+converged states of each solve's load steps before the last). A chunk without its JSON is still being generated and is
 skipped, as `nak eval` does; a chunk whose tensor does not match its JSON is refused by name.
 """
 
@@ -151,6 +152,35 @@ class Dataset:
                 self.root, f"no complete samples in split {split!r} for subsets {list(subsets)} (nak datagen resumes)"
             )
         return Split(samples, torch.from_numpy(np.stack(fields)))
+
+    def load_path_states(self, samples: list[Sample], chunks: list[int], start: float) -> Split | None:
+        """The converged load-step states of `samples` (of this set, in `chunks`) at `start` of their
+        grasp or more, each a sample of its own: its grasps moved by that share of their displacement.
+        `nak datagen` keeps them in `chunk-NNNNN.path.safetensors`; chunks made before it did have
+        none. None if there are none."""
+        wanted = {s.index: s for s in samples}
+        states: list[Sample] = []
+        fields: list[np.ndarray] = []
+        for chunk in chunks:
+            path = self.root / f"chunk-{chunk:05d}.path.safetensors"
+            if not path.is_file():
+                continue
+            try:
+                tensors = load_file(str(path))
+            except (OSError, SafetensorError) as e:
+                raise TrainingInputError(path, f"unreadable load-path states ({e})") from e
+            index, load, field = (tensors.get(k) for k in ("sample", "load", "displacement"))
+            if index is None or load is None or field is None or field.shape[1:] != (self.mesh.node_count, 3):
+                raise TrainingInputError(path, f"expected sample, load and displacement [P, {self.mesh.node_count}, 3]")
+            for p in np.flatnonzero(load >= start):
+                sample = wanted.get(int(index[p]))
+                if sample is not None:
+                    moved = dataclasses.replace(
+                        sample, displacements=sample.displacements * float(load[p]), forces=None
+                    )
+                    states.append(moved)
+                    fields.append(field[p])
+        return Split(states, torch.from_numpy(np.stack(fields))) if states else None
 
     def joined(self, more: list[Dataset]) -> Dataset:
         """This set, training on every sample of `more` too: each must be another seed (the same seed

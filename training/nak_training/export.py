@@ -225,6 +225,8 @@ def provenance(config: TrainConfig, dataset: Dataset, summary: dict[str, Any], s
         "dataset_single": int(dataset.info["single"]),
         "dataset_multi": int(dataset.info["multi"]),
         "train_samples": int(summary["train_samples"]),
+        # The converged load-step states of the train samples that trained it too (path_states_from).
+        **({"path_states": int(summary["path_states"])} if "path_states" in summary else {}),
         "val_samples": int(summary["val_samples"]),
         # Trained while the set was still being made: the chunks it had, to retrain on the same samples.
         **({"dataset_chunks": summary["chunks"]} if "chunks" in summary else {}),

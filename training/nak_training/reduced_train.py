@@ -164,7 +164,8 @@ class ReducedTrainer(Run):
                     return basis
             except (RuntimeError, KeyError) as e:
                 raise TrainingInputError(path, f"unreadable basis ({e}); delete it to recompute") from e
-        pod_samples = min(self.config.pod_samples or len(self.train), len(self.train))
+        samples = len(self.train) - self.path_states
+        pod_samples = min(self.config.pod_samples or samples, samples)
         if self.config.modes > pod_samples:
             raise TrainingInputError(
                 self.dataset.root, f"modes = {self.config.modes} exceeds the {pod_samples} train samples of the POD"

@@ -120,12 +120,22 @@ class Run:
         self.chunks = dataset.complete_chunks()
         # Each added set with the chunks it had, read as it stood now like the first.
         self.more = [(m, m.complete_chunks()) for m in dataset.more]
-        self.train = join(
-            [dataset.load("train", config.subsets, self.chunks)]
-            + [m.load("all", config.subsets, chunks) for m, chunks in self.more]
-        )
+        own = [(dataset, dataset.load("train", config.subsets, self.chunks), self.chunks)]
+        own += [(m, m.load("all", config.subsets, chunks), chunks) for m, chunks in self.more]
+        self.train = join([split for _, split, _ in own])
         if config.train_samples:
             self.train = spread(self.train, config.train_samples)
+        # Load-path states come after the samples they lead to (the POD takes the samples alone).
+        self.path_states = 0
+        if config.path_states_from:
+            kept = {id(s) for s in self.train.samples}
+            states = [
+                d.load_path_states([s for s in split.samples if id(s) in kept], chunks, config.path_states_from)
+                for d, split, chunks in own
+            ]
+            found = [s for s in states if s is not None]
+            self.path_states = sum(len(s) for s in found)
+            self.train = join([self.train, *found])
         self.val = spread(dataset.load("val", config.subsets, self.chunks), config.val_samples)
         self.log(
             f"{config.name}: {config.architecture} ({config.size}) {config.method}, {len(self.train)} train / "
@@ -133,11 +143,18 @@ class Run:
         )
         for m, c in self.more:
             self.log(f"  train adds every sample of {m.root} (seed {m.seed}, {len(c)} of {m.chunk_count()} chunks)")
+        if config.path_states_from:
+            self.log(
+                f"  of which {self.path_states} are the converged load steps (at {config.path_states_from:g} of "
+                "the grasp or more) of the train samples"
+            )
         state = self._load_state()
         if state is None:
             if config.epsilon == "fit":
                 self.log("fitting ε on the train split:")
-                epsilon, scores = fit_epsilon(self.mesh, self.train, self.log)
+                samples = len(self.train) - self.path_states
+                alone = Split(self.train.samples[:samples], self.train.fields[:samples])
+                epsilon, scores = fit_epsilon(self.mesh, alone, self.log)
             else:
                 epsilon, scores = float(config.epsilon), {}
             state = {"epsilon": epsilon, "epsilon_scores": scores}
@@ -314,7 +331,8 @@ class Run:
             "training_time_s": round(self.elapsed, 1),
             "commit": commit,
             "volumetric_law": self.dataset.volumetric_law,
-            "train_samples": len(self.train),
+            "train_samples": len(self.train) - self.path_states,
+            **({"path_states": self.path_states} if self.path_states else {}),
             "val_samples": len(self.val),
             **({"chunks": self.chunks} if len(self.chunks) < self.dataset.chunk_count() else {}),
             **({"more_data": self._more_description()} if self.more else {}),
@@ -331,7 +349,8 @@ class Run:
         return {
             "seed": self.dataset.seed,
             "samples": int(info["single"]) + int(info["multi"]),
-            "train_samples": len(self.train),
+            "train_samples": len(self.train) - self.path_states,
+            **({"path_states": self.path_states} if self.path_states else {}),
             **(
                 {"more": [{k: d[k] for k in ("seed", "single", "multi")} for d in self._more_description()]}
                 if self.more
