@@ -217,7 +217,8 @@ fn nonlinear_datagen_is_deterministic_resumable_and_shares_grasps_with_linear() 
         assert_eq!(std::fs::read(&sa.0).unwrap(), std::fs::read(&sb.0).unwrap());
         assert_eq!(std::fs::read(&sa.1).unwrap(), std::fs::read(&sb.1).unwrap());
     }
-    path_states_are_the_converged_load_steps(&a, &b);
+    let states = path_states_are_the_converged_load_steps(&a, &b);
+    assert!(report.contains(&format!("{states} load-path states kept")), "{report}");
     assert!(datagen_box(&linear, &cache, &[]).status.success());
     assert!(
         !dataset::path_states_path(&linear, 0).exists(),
@@ -262,7 +263,8 @@ fn nonlinear_datagen_is_deterministic_resumable_and_shares_grasps_with_linear() 
 /// Each chunk of `a` keeps, beside it, the converged states of its solves' load steps before the
 /// last: the same bytes in `b` (made the same way, one chunk resumed), one state per load step but
 /// the last of each sample, in order of load, its grasped nodes moved by that share of the grasp.
-fn path_states_are_the_converged_load_steps(a: &Path, b: &Path) {
+/// Returns how many states `a` keeps.
+fn path_states_are_the_converged_load_steps(a: &Path, b: &Path) -> usize {
     let by_index: std::collections::BTreeMap<u64, (dataset::SampleRecord, Vec<f32>)> =
         samples(a).into_iter().map(|s| (s.0.index, s)).collect();
     let mut states = 0;
@@ -301,6 +303,7 @@ fn path_states_are_the_converged_load_steps(a: &Path, b: &Path) {
         states >= 6,
         "{states} states: every sample took more than one load step"
     );
+    states
 }
 
 #[test]

@@ -269,7 +269,8 @@ fn print_nonlinear_tally(t: &NonlinearTally) {
         "nonlinear: {} samples, {} failed ({:.1} %); per sample on one core {:.2} s median / {:.2} s mean / {:.2} s \
          for the slowest 1 % / {:.2} s slowest; per converged sample: Newton iterations {:.1} mean / {} max, load steps {:.1} mean, \
          factorizations {:.1} mean, conjugate-gradient iterations {:.1} mean, local Newton iterations around the \
-         graspers {:.1} mean; {} with step cuts, {} with shifted tangents, {} load steps undone for jumping branches",
+         graspers {:.1} mean; {} with step cuts, {} with shifted tangents, {} load steps undone for jumping branches; \
+         {} load-path states kept beside the chunks (each converged sample's load steps before its last)",
         t.attempted,
         t.failed,
         100.0 * t.failed as f64 / t.attempted.max(1) as f64,
@@ -286,6 +287,7 @@ fn print_nonlinear_tally(t: &NonlinearTally) {
         t.cut,
         t.shifted,
         t.branch_jumps,
+        t.load_steps - converged,
     );
     if !t.failure_reasons.is_empty() {
         let reasons: Vec<String> = t.failure_reasons.iter().map(|(why, n)| format!("{n} {why}")).collect();

@@ -213,8 +213,9 @@ impl SolveProfile {
 pub struct Equilibrium {
     pub displacement: Vec<[f64; 3]>,
     /// The converged states of the load steps before the last, in order: each the equilibrium of
-    /// its fraction of the load, to the intermediate tolerance. Equilibrium does not depend on the
-    /// path, so each is a sample of its own load for free (`nak datagen` keeps them beside a chunk).
+    /// its fraction of the load, to the intermediate tolerance. The load moves along a straight line,
+    /// so each is what a solve of its fraction alone reaches: a sample of its own for no more
+    /// solving (`nak datagen` keeps them beside a chunk).
     pub path: Vec<PathState>,
     /// Force the constraints exert on each prescribed node, in the order given.
     pub reactions: Vec<[f64; 3]>,

@@ -771,7 +771,7 @@ def test_load_path_states_train_as_samples_of_their_share_of_the_grasp(nak_binar
     manifest = tomllib.loads((tmp_path / "models" / "tiny" / "manifest.toml").read_text())
     assert manifest["provenance"]["path_states"] == len(states)
     for bad, words in (
-        (dict(path_states_from=1.0), r"must be in \[0, 1\)"),
+        (dict(path_states_from=1.5), r"must be in \[0, 1\]"),
         (dict(path_states_from=0.5, forces=True), "a network without forces"),
         (dict(path_states_from=0.5, method="res", prior="green-linear"), "a network without forces"),
     ):

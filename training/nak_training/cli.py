@@ -8,6 +8,7 @@ python -m nak_training report --data DATA
 python -m nak_training failures --data DATA    (nonlinear failures against how deep the grasps push)
 python -m nak_training forces --data DATA --model DIR   (grasp forces against the FEM's, and their cost)
 python -m nak_training misses --data DATA --model DIR   (a network's error against how deep the grasps push)
+python -m nak_training paired --data DATA --model A B   (two models' DCMs on the same samples, paired)
 """
 
 from __future__ import annotations
@@ -88,6 +89,12 @@ def main(argv: list[str] | None = None) -> int:
     missed.add_argument("--nak", type=Path, default=DEFAULT_NAK)
     missed.add_argument("--mesh", type=Path, default=DEFAULT_MESH)
     missed.add_argument("--figure", type=Path, help="also draw every sample's error against its push (PNG)")
+    pair = commands.add_parser("paired", help="two models on the same samples: the DCM gain and its paired error")
+    pair.add_argument("--data", type=Path, required=True, help="a dataset made by nak datagen")
+    pair.add_argument("--model", nargs=2, required=True, help="two model directories or served names (A, then B)")
+    pair.add_argument("--split", default="all", choices=["train", "val", "test", "all"])
+    pair.add_argument("--nak", type=Path, default=DEFAULT_NAK)
+    pair.add_argument("--mesh", type=Path, default=DEFAULT_MESH)
     args = parser.parse_args(argv)
     try:
         if args.command == "forces":
@@ -105,6 +112,11 @@ def main(argv: list[str] | None = None) -> int:
             from .misses import report as misses_report
 
             print(misses_report(args.data, args.model, args.nak, args.mesh, args.figure))
+            return 0
+        if args.command == "paired":
+            from .paired import report as paired_report
+
+            print(paired_report(args.data, args.model, args.nak, args.mesh, args.split))
             return 0
         if args.command == "report":
             from .report import write_report

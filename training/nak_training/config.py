@@ -60,8 +60,9 @@ class TrainConfig:
     pod_samples: int = 0
     # Train on the converged states of the train samples' load steps too (`nak datagen` keeps them
     # beside each nonlinear chunk: the organ's equilibrium with the grasps moved by that share of their
-    # displacement), those at this share or more, in (0, 1); 0: none.
-    path_states_from: float = 0.0
+    # displacement), those at this share or more: 0 takes them all, 1 (every state is short of the
+    # whole grasp) none.
+    path_states_from: float = 1.0
     # Reduced networks: a second output, the force on each interaction point, trained on the data's
     # finite-element grasp forces with this weight on their mean relative error (docs/design.md §7).
     forces: bool = False
@@ -165,11 +166,12 @@ def parse_config(values: dict[str, Any], origin: str) -> TrainConfig:
         )
     if not 0.0 <= config.ema < 1.0:
         raise TrainingInputError(origin, f"ema = {config.ema!r}: must be in [0, 1) (0: no averaging)")
-    if not 0.0 <= config.path_states_from < 1.0:
+    if not 0.0 <= config.path_states_from <= 1.0:
         raise TrainingInputError(
-            origin, f"path_states_from = {config.path_states_from!r}: must be in [0, 1) (0: no load-path states)"
+            origin,
+            f"path_states_from = {config.path_states_from!r}: must be in [0, 1] (0: every load-path state, 1: none)",
         )
-    if config.path_states_from and (config.forces or config.prior != "kelvinlet"):
+    if config.path_states_from < 1.0 and (config.forces or config.prior != "kelvinlet"):
         # The states carry no grasp forces, and nak serves green-linear's and green-tangent's fields per
         # sample of a split, not per state.
         raise TrainingInputError(

@@ -93,6 +93,24 @@ def eval_model_dir(
         return nak_eval(nak, data, name, mesh, Path(alone), split, flags)
 
 
+# The models nak serves without a model directory, and the flag each needs.
+BUILT_IN = {"kelvinlet": (), "green-linear": ("--green-linear",), "green-tangent": ("--green-tangent",)}
+# Errors only: no requests timed after the scoring pass.
+UNTIMED = ("--latency-samples", "0")
+
+
+def scored(model: str, data: Path, nak: Path, mesh: Path, split: str) -> tuple[str, dict[str, Any]]:
+    """The model's name and `nak eval`'s report of it on `split` of `data` (errors only, untimed): a
+    model directory, or a model nak serves by name."""
+    if model in BUILT_IN:
+        return model, nak_eval(nak, data, model, mesh, None, split, BUILT_IN[model] + UNTIMED)
+    directory = Path(model)
+    if not directory.is_dir():
+        raise TrainingInputError(directory, f"is not a model directory (nor one of {', '.join(BUILT_IN)})")
+    name = read_manifest(directory)["model"]["name"]
+    return name, eval_model_dir(directory, name, data, nak, mesh, split, UNTIMED)
+
+
 def evaluate(model_dir: Path, data: Path, nak: Path, mesh: Path, split: str = "test") -> dict[str, Any]:
     """Scores the model in `model_dir` on `split` of `data` and writes its [metrics] (and, for a model
     with learned forces, their error in [forces]); returns the metrics."""

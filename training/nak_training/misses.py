@@ -21,14 +21,10 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from .errors import TrainingInputError  # noqa: E402
-from .evaluate import eval_model_dir, nak_eval, read_manifest  # noqa: E402
+from .evaluate import scored  # noqa: E402
 from .failures import EDGES_MM, Outcome, outcomes, span  # noqa: E402
 
 SUBSETS = ("single", "multi")
-# The models nak serves without a model directory, and the flag each needs.
-BUILT_IN = {"kelvinlet": (), "green-linear": ("--green-linear",), "green-tangent": ("--green-tangent",)}
-# Errors only: no requests timed after the scoring pass.
-UNTIMED = ("--latency-samples", "0")
 
 
 @dataclass(frozen=True)
@@ -119,22 +115,10 @@ def figure(found: list[Miss], name: str, path: Path) -> None:
     plt.close(fig)
 
 
-def scored(model: str, data: Path, nak: Path, mesh: Path) -> tuple[str, dict[str, Any]]:
-    """The model's name and `nak eval`'s report of it on every sample of `data`: a model directory, or a
-    model nak serves by name."""
-    if model in BUILT_IN:
-        return model, nak_eval(nak, data, model, mesh, None, "all", BUILT_IN[model] + UNTIMED)
-    directory = Path(model)
-    if not directory.is_dir():
-        raise TrainingInputError(directory, f"is not a model directory (nor one of {', '.join(BUILT_IN)})")
-    name = read_manifest(directory)["model"]["name"]
-    return name, eval_model_dir(directory, name, data, nak, mesh, "all", UNTIMED)
-
-
 def report(data: Path, model: str, nak: Path, mesh: Path, figure_path: Path | None) -> str:
     """Scores `model` (a model directory, or a model nak serves by name) on every sample of `data` and
     tabulates where it misses."""
-    name, evaluated = scored(model, data, nak, mesh)
+    name, evaluated = scored(model, data, nak, mesh, "all")
     found = misses(evaluated, {o.index: o for o in outcomes(data)})
     if figure_path is not None:
         figure(found, name, figure_path)

@@ -127,7 +127,7 @@ class Run:
             self.train = spread(self.train, config.train_samples)
         # Load-path states come after the samples they lead to (the POD takes the samples alone).
         self.path_states = 0
-        if config.path_states_from:
+        if config.path_states_from < 1.0:
             kept = {id(s) for s in self.train.samples}
             states = [
                 d.load_path_states([s for s in split.samples if id(s) in kept], chunks, config.path_states_from)
@@ -143,7 +143,7 @@ class Run:
         )
         for m, c in self.more:
             self.log(f"  train adds every sample of {m.root} (seed {m.seed}, {len(c)} of {m.chunk_count()} chunks)")
-        if config.path_states_from:
+        if config.path_states_from < 1.0:
             self.log(
                 f"  of which {self.path_states} are the converged load steps (at {config.path_states_from:g} of "
                 "the grasp or more) of the train samples"
