@@ -250,7 +250,6 @@ pub fn chunk_paths(dir: &Path, chunk: usize) -> (PathBuf, PathBuf) {
     )
 }
 
-/// Writes one chunk; the JSON goes last, by rename, marking the chunk complete.
 /// A converged state on the way to a sample's whole grasp: its grasps moved by `load` times their
 /// displacements, and the organ's field then (f32, [N × 3]).
 #[derive(Debug, Clone, PartialEq)]
@@ -300,6 +299,7 @@ pub fn write_path_states(
     std::fs::write(&path, bytes).map_err(io(&path))
 }
 
+/// Writes one chunk; the JSON goes last, by rename, marking the chunk complete.
 pub fn write_chunk(
     dir: &Path,
     chunk: usize,
