@@ -93,6 +93,14 @@ def eval_model_dir(
         return nak_eval(nak, data, name, mesh, Path(alone), split, flags)
 
 
+def sample_errors(report: dict[str, Any]) -> list[dict[str, Any]]:
+    """The per-sample errors of a `nak eval` JSON report (`--output`), refused when it has none."""
+    samples: list[dict[str, Any]] | None = report.get("samples")
+    if not samples:
+        raise TrainingInputError(Path(str(report.get("data"))), "nak eval reported no per-sample errors")
+    return samples
+
+
 # The models nak serves without a model directory, and the flag each needs.
 BUILT_IN = {"kelvinlet": (), "green-linear": ("--green-linear",), "green-tangent": ("--green-tangent",)}
 # Errors only: no requests timed after the scoring pass.

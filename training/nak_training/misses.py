@@ -21,7 +21,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from .errors import TrainingInputError  # noqa: E402
-from .evaluate import scored  # noqa: E402
+from .evaluate import sample_errors, scored  # noqa: E402
 from .failures import EDGES_MM, Outcome, outcomes, span  # noqa: E402
 
 SUBSETS = ("single", "multi")
@@ -36,11 +36,8 @@ class Miss:
 
 def misses(report: dict[str, Any], solves: dict[int, Outcome]) -> list[Miss]:
     """The scored samples of a `nak eval` JSON report, each with how its ground truth was solved."""
-    samples = report.get("samples")
-    if not samples:
-        raise TrainingInputError(Path(str(report.get("data"))), "nak eval reported no per-sample errors")
     try:
-        return [Miss(s["subset"], float(s["volume"]), solves[int(s["index"])]) for s in samples]
+        return [Miss(s["subset"], float(s["volume"]), solves[int(s["index"])]) for s in sample_errors(report)]
     except KeyError as e:
         raise TrainingInputError(Path(str(report.get("data"))), f"sample {e} is not in the dataset's chunks") from e
 

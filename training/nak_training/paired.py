@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from .errors import TrainingInputError
-from .evaluate import scored
+from .evaluate import sample_errors, scored
 
 SUBSETS = ("single", "multi")
 
@@ -35,10 +35,7 @@ class Difference:
 
 def errors_of(report: dict[str, Any]) -> dict[int, tuple[str, float]]:
     """Each scored sample's subset and volume-form relative error in a `nak eval` JSON report."""
-    samples = report.get("samples")
-    if not samples:
-        raise TrainingInputError(Path(str(report.get("data"))), "nak eval reported no per-sample errors")
-    return {int(s["index"]): (str(s["subset"]), float(s["volume"])) for s in samples}
+    return {int(s["index"]): (str(s["subset"]), float(s["volume"])) for s in sample_errors(report)}
 
 
 def paired(first: dict[str, Any], second: dict[str, Any]) -> list[Difference]:

@@ -164,8 +164,7 @@ class ReducedTrainer(Run):
                     return basis
             except (RuntimeError, KeyError) as e:
                 raise TrainingInputError(path, f"unreadable basis ({e}); delete it to recompute") from e
-        samples = len(self.train) - self.path_states
-        pod_samples = min(self.config.pod_samples or samples, samples)
+        pod_samples = min(self.config.pod_samples or self.sample_count, self.sample_count)
         if self.config.modes > pod_samples:
             raise TrainingInputError(
                 self.dataset.root, f"modes = {self.config.modes} exceeds the {pod_samples} train samples of the POD"

@@ -126,16 +126,14 @@ class Run:
         if config.train_samples:
             self.train = spread(self.train, config.train_samples)
         # Load-path states come after the samples they lead to (the POD takes the samples alone).
-        self.path_states = 0
+        self.sample_count = len(self.train)
         if config.path_states_from < 1.0:
             kept = {id(s) for s in self.train.samples}
             states = [
                 d.load_path_states([s for s in split.samples if id(s) in kept], chunks, config.path_states_from)
                 for d, split, chunks in own
             ]
-            found = [s for s in states if s is not None]
-            self.path_states = sum(len(s) for s in found)
-            self.train = join([self.train, *found])
+            self.train = join([self.train, *(s for s in states if s is not None)])
         self.val = spread(dataset.load("val", config.subsets, self.chunks), config.val_samples)
         self.log(
             f"{config.name}: {config.architecture} ({config.size}) {config.method}, {len(self.train)} train / "
@@ -152,8 +150,7 @@ class Run:
         if state is None:
             if config.epsilon == "fit":
                 self.log("fitting ε on the train split:")
-                samples = len(self.train) - self.path_states
-                alone = Split(self.train.samples[:samples], self.train.fields[:samples])
+                alone = Split(self.train.samples[: self.sample_count], self.train.fields[: self.sample_count])
                 epsilon, scores = fit_epsilon(self.mesh, alone, self.log)
             else:
                 epsilon, scores = float(config.epsilon), {}
@@ -166,6 +163,11 @@ class Run:
             self.log(f"prior of the residual: {config.prior}, through Green's functions as nak serves it")
         self.volumes = self.mesh.nodal_volumes.float()
         self.q = QSampler(self.mesh, self.generator) if config.method == "reg" else None
+
+    @property
+    def path_states(self) -> int:
+        """How many of the train split's entries are load-path states rather than samples."""
+        return len(self.train) - self.sample_count
 
     def residual_prior(self, split: Split, name: str) -> torch.Tensor:
         """The prior +Res learns its residual to, for every sample of `split` (drawn from split `name`):
@@ -331,7 +333,7 @@ class Run:
             "training_time_s": round(self.elapsed, 1),
             "commit": commit,
             "volumetric_law": self.dataset.volumetric_law,
-            "train_samples": len(self.train) - self.path_states,
+            "train_samples": self.sample_count,
             **({"path_states": self.path_states} if self.path_states else {}),
             "val_samples": len(self.val),
             **({"chunks": self.chunks} if len(self.chunks) < self.dataset.chunk_count() else {}),
@@ -349,7 +351,7 @@ class Run:
         return {
             "seed": self.dataset.seed,
             "samples": int(info["single"]) + int(info["multi"]),
-            "train_samples": len(self.train) - self.path_states,
+            "train_samples": self.sample_count,
             **({"path_states": self.path_states} if self.path_states else {}),
             **(
                 {"more": [{k: d[k] for k in ("seed", "single", "multi")} for d in self._more_description()]}
