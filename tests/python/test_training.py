@@ -16,6 +16,7 @@ from typing import Any
 import client
 import grpc
 import numpy as np
+import onnx
 import onnxruntime
 import pytest
 import torch
@@ -29,9 +30,10 @@ from nak_training.export import export
 from nak_training.force_report import write_force_report
 from nak_training.kelvinlet import Prior, pad_points
 from nak_training.models import Grasped, MeshGNN, build
-from nak_training.reduced import Ensemble, GraspEncoder
+from nak_training.reduced import Ensemble, GraspEncoder, InteractionGraph
 from nak_training.reduced_train import ReducedTrainer, load_reduced
 from nak_training.served import Nak
+from nak_training.static_sizes import fold_static_sizes, refold_interaction_graph
 from nak_training.train import Trainer
 
 COARSE = ROOT / "models" / "phantom-liver" / "liver-coarse.msh"
@@ -550,6 +552,45 @@ def test_the_grasp_encoder_sees_grasps_whatever_their_order_or_padding(coarse_da
         grown = net.encoder(torch.cat([interaction, centroid], 1))
     assert torch.allclose(g, shuffled, atol=1e-5) and torch.allclose(g, padded, atol=1e-5)
     assert float((grown - g).norm()) > 1e-4 * float(g.norm())
+
+
+def test_exported_graphs_read_no_fixed_size_at_run_time_and_older_ones_are_folded_alike(
+    coarse_data: Path, reduced: Path, tmp_path: Path
+) -> None:
+    """PyTorch traces `shape[i]` as Shape → Gather even of a fixed axis, and ONNX Runtime then slices
+    weights at every request; export folds them, and `fold` does it to a graph exported before."""
+    config = load_config(reduced / "pod-grasps" / "config.toml")
+    net, _ = load_reduced(reduced.parent / "reduced-runs" / "pod-grasps", config)
+    assert fold_static_sizes(onnx.load(str(reduced / "pod-grasps" / "model.onnx"))) == 0
+
+    older = tmp_path / "older"
+    older.mkdir()
+    positions = open_dataset(coarse_data).mesh.positions
+    graph = InteractionGraph(net, None, positions, folded=False)
+    interaction = torch.cat([positions[:5].float(), torch.full((5, 3), 0.01)], 1)[None]
+    torch.onnx.export(
+        graph,
+        (interaction,),
+        str(older / "model.onnx"),
+        input_names=["interaction"],
+        output_names=["coefficients"],
+        dynamic_axes={"interaction": {0: "batch", 1: "points"}, "coefficients": {0: "batch"}},
+        opset_version=17,
+        dynamo=False,
+    )
+    assert fold_static_sizes(onnx.load(str(older / "model.onnx"))) > 0  # what export did before
+    assert "answers unchanged" in refold_interaction_graph(older)
+    assert fold_static_sizes(onnx.load(str(older / "model.onnx"))) == 0
+    with torch.no_grad():
+        expected = net.encoder(interaction).numpy()
+    (got,) = onnxruntime.InferenceSession(str(older / "model.onnx")).run(None, {"interaction": interaction.numpy()})
+    assert np.abs(got - expected).max() <= 1e-5 * np.abs(expected).max()
+
+    features = tmp_path / "features"
+    features.mkdir()
+    shutil.copy(ROOT / "models" / "phantom-liver" / "pointnet-base" / "model.onnx", features / "model.onnx")
+    with pytest.raises(TrainingInputError, match="not an interaction-form graph"):
+        refold_interaction_graph(features)
 
 
 def test_reduced_training_beats_the_untrained_network_through_nak_eval(

@@ -9,6 +9,7 @@ python -m nak_training failures --data DATA    (nonlinear failures against how d
 python -m nak_training forces --data DATA --model DIR   (grasp forces against the FEM's, and their cost)
 python -m nak_training misses --data DATA --model DIR   (a network's error against how deep the grasps push)
 python -m nak_training paired --data DATA --model A B   (two models' DCMs on the same samples, paired)
+python -m nak_training fold --model DIR...    (fold the fixed sizes of graphs exported before export did)
 """
 
 from __future__ import annotations
@@ -95,6 +96,10 @@ def main(argv: list[str] | None = None) -> int:
     pair.add_argument("--split", default="all", choices=["train", "val", "test", "all"])
     pair.add_argument("--nak", type=Path, default=DEFAULT_NAK)
     pair.add_argument("--mesh", type=Path, default=DEFAULT_MESH)
+    refold = commands.add_parser(
+        "fold", help="fold the fixed sizes of reduced networks' graphs exported before export did it (in place)"
+    )
+    refold.add_argument("--model", type=Path, nargs="+", required=True, help="model directories")
     args = parser.parse_args(argv)
     try:
         if args.command == "forces":
@@ -117,6 +122,12 @@ def main(argv: list[str] | None = None) -> int:
             from .paired import report as paired_report
 
             print(paired_report(args.data, args.model, args.nak, args.mesh, args.split))
+            return 0
+        if args.command == "fold":
+            from .static_sizes import refold_interaction_graph
+
+            for directory in args.model:
+                print(refold_interaction_graph(directory))
             return 0
         if args.command == "report":
             from .report import write_report

@@ -26,10 +26,10 @@ from .errors import TrainingInputError
 from .reduced import InteractionGraph
 from .reduced_train import basis_ceiling, load_reduced
 from .revision import git_commit
+from .static_sizes import RELATIVE_TOLERANCE, fold_file
 from .train import load_trained, served_features
 
 OPSET = 17
-RELATIVE_TOLERANCE = 1e-5
 BASIS_FILE = "basis.safetensors"
 CEILING_PREFIX = "basis_ceiling_dcm_m"
 CHECK_SAMPLES = 4
@@ -111,6 +111,7 @@ def write_features_graph(
         opset_version=OPSET,
         dynamo=False,
     )
+    fold_file(graph)
     checked(model, graph, [features[i : i + 1] for i in range(len(check))], "features", ["displacement"], log)
     return ["position", "displacement", "active"]
 
@@ -149,6 +150,7 @@ def write_interaction_graph(
         do_constant_folding=net.trunk is None,
         dynamo=False,
     )
+    fold_file(graph)
     checked(module, graph, inputs, "interaction", outputs, log)
     if basis is not None and not folded:
         values = basis.float().numpy().astype(np.float16 if config.basis_precision == "f16" else np.float32)
