@@ -419,7 +419,7 @@ fn refused(output: &std::process::Output, words: &[&str]) {
 }
 
 #[test]
-fn shards_join_into_the_dataset_an_unsharded_run_makes() {
+fn a_set_made_in_shards_or_chunk_ranges_is_the_set_one_run_makes() {
     let dir = tempfile::tempdir().unwrap();
     let cache = dir.path().join("cache");
     let path = |name: &str| dir.path().join(name);
@@ -475,6 +475,35 @@ fn shards_join_into_the_dataset_an_unsharded_run_makes() {
     );
     refused(&join(&path("j6"), &[&path("whole"), &first]), &["not a shard"]);
     refused(&join(&path("whole"), &[&first, &second]), &["not empty"]);
+
+    // Chunk ranges: chunk 1 here, chunk 0 on "another machine" copied in, and a run without a range
+    // finds nothing left to make; the set is the whole run's.
+    let (here, elsewhere) = (path("here"), path("elsewhere"));
+    for (out, range) in [(&here, "1"), (&elsewhere, "0-0")] {
+        let run = datagen_box(out, &cache, &[&nonlinear[..], &["--chunks", range]].concat());
+        assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+        let stdout = String::from_utf8_lossy(&run.stdout);
+        assert!(stdout.contains("3 samples (chunks"), "{stdout}");
+    }
+    assert!(dataset::chunk_paths(&here, 1).1.is_file() && !dataset::chunk_paths(&here, 0).1.exists());
+    for (name, bytes) in files(&elsewhere) {
+        if name.starts_with("chunk-00000") {
+            std::fs::write(here.join(name), bytes).unwrap();
+        }
+    }
+    let rest = datagen_box(&here, &cache, &nonlinear);
+    assert!(String::from_utf8_lossy(&rest.stdout).contains("(2 resumed)"));
+    let (mut here, mut whole) = (files(&here), files(&path("whole")));
+    let (here_mesh, whole_mesh) = (here.remove("mesh.safetensors"), whole.remove("mesh.safetensors"));
+    assert!(dataset::same_mesh_file(&here_mesh.unwrap(), &whole_mesh.unwrap()));
+    assert_eq!(here, whole);
+    for (bad, message) in [
+        ("2", "the set has 2 chunks, numbered 0 to 1"),
+        ("1-0", "the last chunk comes before the first"),
+        ("one", "is not a chunk range"),
+    ] {
+        refused(&datagen_box(&path("bad-range"), &cache, &["--chunks", bad]), &[message]);
+    }
 }
 
 #[test]

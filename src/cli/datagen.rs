@@ -8,8 +8,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use nak::data::dataset::{DatasetInfo, SPLIT_RULE, SolverLimits};
-use nak::data::generate::{NonlinearTally, generate_linear, generate_nonlinear};
-use nak::data::shard::Shard;
+use nak::data::generate::{NonlinearTally, Part, generate_linear, generate_nonlinear};
+use nak::data::shard::{ChunkRange, Shard};
 use nak::engine::Regime;
 use nak::fem::nonlinear::{Elimination, NewtonOptions};
 use nak::fem::preload::Preloaded;
@@ -65,6 +65,11 @@ pub struct DatagenArgs {
     /// (--out); `nak dataset join` assembles the N shard directories into the whole dataset.
     #[arg(long, value_name = "I/N")]
     shard: Option<Shard>,
+    /// Make only chunks FIRST to LAST (0-based, both included; or one chunk N) of the set, in --out:
+    /// part of a set made on another machine with the same arguments, its chunks copied in beside the
+    /// others; a run without --chunks makes whatever is left.
+    #[arg(long, value_name = "FIRST-LAST")]
+    chunks: Option<ChunkRange>,
     /// Where the Green's functions and the gravity preload are cached [default: $NAK_CACHE_DIR, else $XDG_CACHE_HOME/nak or ~/.cache/nak].
     #[arg(long)]
     pub cache_dir: Option<PathBuf>,
@@ -129,6 +134,13 @@ pub fn run(args: DatagenArgs, mesh: &TetMesh, cache: PathBuf) -> anyhow::Result<
         volumetric_law: matches!(args.regime, Regime::Nonlinear).then_some(mesh.config.volumetric_law),
         shard: args.shard,
     };
+    if let Some(range) = args.chunks {
+        range.check_within(info.chunks()).map_err(anyhow::Error::msg)?;
+    }
+    let part = Part {
+        dir: &args.out,
+        chunks: args.chunks,
+    };
     let rate = Arc::new(MeanRate::default());
     let shown = Arc::clone(&rate);
     let bar = indicatif::ProgressBar::new(0).with_style(
@@ -168,7 +180,7 @@ pub fn run(args: DatagenArgs, mesh: &TetMesh, cache: PathBuf) -> anyhow::Result<
                 .with_context(|| format!("cannot prepare the Green's functions (cache {})", cache.display()))?;
             bar.set_message("samples");
             bar.set_position(0);
-            generate_linear(mesh, &green, &info, &args.out, update)?
+            generate_linear(mesh, &green, &info, part, update)?
         }
         Regime::Nonlinear => {
             bar.set_message("gravity preload (one Newton solve, cached)");
@@ -194,7 +206,7 @@ pub fn run(args: DatagenArgs, mesh: &TetMesh, cache: PathBuf) -> anyhow::Result<
             }
             bar.set_message("samples");
             bar.set_position(0);
-            generate_nonlinear(mesh, &preloaded, &info, &args.out, update)?
+            generate_nonlinear(mesh, &preloaded, &info, part, update)?
         }
     };
     bar.finish_and_clear();
@@ -202,9 +214,10 @@ pub fn run(args: DatagenArgs, mesh: &TetMesh, cache: PathBuf) -> anyhow::Result<
     let new = generated
         .samples
         .saturating_sub(generated.chunks_skipped * info.chunk_size);
-    let part = match info.shard {
-        Some(shard) => format!(" (shard {shard} of a dataset of {} samples)", info.total()),
-        None => format!(" ({} single, {} multi)", info.single, info.multi),
+    let part = match (info.shard, args.chunks) {
+        (Some(shard), _) => format!(" (shard {shard} of a dataset of {} samples)", info.total()),
+        (None, Some(range)) => format!(" (chunks {range} of a dataset of {} samples)", info.total()),
+        (None, None) => format!(" ({} single, {} multi)", info.single, info.multi),
     };
     println!(
         "{}: {} samples{part} in {} chunks ({} resumed); {:.1} s, {:.1} samples/s",

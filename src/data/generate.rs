@@ -9,6 +9,7 @@ use rayon::prelude::*;
 
 use super::GraspSampler;
 use super::dataset::{self, DatasetError, DatasetInfo, PathField, SampleRecord, SolveRecord};
+use super::shard::ChunkRange;
 use crate::fem::nonlinear::{PathState, SolveProfile, SolveStats};
 use crate::fem::preload::Preloaded;
 use crate::fem::{FemError, GreenFunctions, nodal_forces, solve_dirichlet};
@@ -139,11 +140,11 @@ pub fn generate_linear(
     mesh: &TetMesh,
     green: &GreenFunctions,
     info: &DatasetInfo,
-    dir: &Path,
+    part: Part<'_>,
     progress: impl Fn(usize, usize) + Sync,
 ) -> Result<Generated, DatasetError> {
     let direct = AtomicUsize::new(0);
-    let mut generated = generate(mesh, info, dir, progress, |sample| {
+    let mut generated = generate(mesh, info, part, progress, |sample| {
         linear_field(mesh, green, sample, &direct).map(Solved::from)
     })?;
     generated.direct_solves = direct.load(Ordering::Relaxed);
@@ -156,11 +157,11 @@ pub fn generate_nonlinear(
     mesh: &TetMesh,
     preloaded: &Preloaded,
     info: &DatasetInfo,
-    dir: &Path,
+    part: Part<'_>,
     progress: impl Fn(usize, usize) + Sync,
 ) -> Result<Generated, DatasetError> {
     let tally = Mutex::new(NonlinearTally::default());
-    let mut generated = generate(mesh, info, dir, progress, |sample| {
+    let mut generated = generate(mesh, info, part, progress, |sample| {
         let started = std::time::Instant::now();
         let mut field = vec![f32::NAN; 3 * mesh.node_count()];
         let prescribed = sample.prescribed();
@@ -220,15 +221,24 @@ fn path_fields(sample: u64, path: &[PathState]) -> Vec<PathField> {
         .collect()
 }
 
+/// Where a run writes its set and which of the set's chunks it makes (None: all it owns).
+#[derive(Debug, Clone, Copy)]
+pub struct Part<'a> {
+    pub dir: &'a Path,
+    pub chunks: Option<ChunkRange>,
+}
+
 /// The chunked, resumable driver both regimes share: draws each chunk's samples from (seed, index),
-/// solves them in parallel over cores with `solve`, writes the chunk. A shard does its chunks only.
+/// solves them in parallel over cores with `solve`, writes the chunk. A shard does its chunks only,
+/// and a run given a chunk range only those of them.
 fn generate(
     mesh: &TetMesh,
     info: &DatasetInfo,
-    dir: &Path,
+    part: Part<'_>,
     progress: impl Fn(usize, usize) + Sync,
     solve: impl Fn(&mut SampleRecord) -> Result<Solved, DatasetError> + Sync,
 ) -> Result<Generated, DatasetError> {
+    let dir = part.dir;
     if let Ok(existing) = dataset::read_info(dir)
         && existing != *info
     {
@@ -245,7 +255,9 @@ fn generate(
     let sampler = GraspSampler::from_mesh(mesh)?;
     let complete = dataset::complete_chunks(dir, info.chunks());
     let range_of = |chunk: usize| chunk * info.chunk_size..((chunk + 1) * info.chunk_size).min(info.total());
-    let owned = |chunk: &usize| info.shard.is_none_or(|shard| shard.owns(*chunk));
+    let owned = |chunk: &usize| {
+        info.shard.is_none_or(|shard| shard.owns(*chunk)) && part.chunks.is_none_or(|range| range.contains(*chunk))
+    };
     let total = (0..info.chunks()).filter(owned).map(|c| range_of(c).len()).sum();
     let done = AtomicUsize::new(0);
     let mut result = Generated {
