@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import onnx
 import onnxruntime
+from google.protobuf.message import DecodeError
 from onnx import helper, numpy_helper
 
 from .errors import TrainingInputError
@@ -28,10 +29,11 @@ def fold_static_sizes(model: onnx.ModelProto) -> int:
     no longer feeds the outputs; returns how many sizes were folded."""
     graph = model.graph
     sizes = fixed_sizes(model)
-    constants = {t.name: numpy_helper.to_array(t) for t in graph.initializer}
+    # The tensors a Gather's indices may be, converted only when one is (the weights are not).
+    constants = {t.name: t for t in graph.initializer}
     for node in graph.node:
         if node.op_type == "Constant" and node.attribute and node.attribute[0].name == "value":
-            constants[node.output[0]] = numpy_helper.to_array(node.attribute[0].t)
+            constants[node.output[0]] = node.attribute[0].t
     shape_of = {n.output[0]: n for n in graph.node if n.op_type == "Shape"}
     folded = 0
     for i, node in enumerate(graph.node):
@@ -42,7 +44,7 @@ def fold_static_sizes(model: onnx.ModelProto) -> int:
         if dims is None:
             continue
         dims = dims[shape_slice(shape, len(dims))]
-        picked = np.take(np.array(dims, dtype=object), constants[node.input[1]])
+        picked = np.take(np.array(dims, dtype=object), numpy_helper.to_array(constants[node.input[1]]))
         if any(d is None for d in np.ravel(picked)):
             continue
         value = numpy_helper.from_array(np.array(picked, dtype=np.int64))
@@ -94,7 +96,7 @@ def fold_file(path: Path) -> int:
 def read_graph(path: Path) -> onnx.ModelProto:
     try:
         return onnx.load(str(path))
-    except (OSError, ValueError, onnx.onnx_cpp2py_export.checker.ValidationError) as e:
+    except (OSError, DecodeError) as e:
         raise TrainingInputError(path, f"unreadable ONNX graph ({e})") from e
 
 
@@ -105,12 +107,13 @@ def refold_interaction_graph(directory: Path) -> str:
     model = read_graph(path)
     if [i.name for i in model.graph.input] != ["interaction"]:
         raise TrainingInputError(path, "not an interaction-form graph (a reduced network): export it again instead")
+    as_it_was = model.SerializeToString()
     folded = fold_static_sizes(model)
     if not folded:
         return f"{directory}: nothing to fold"
     onnx.checker.check_model(model)
     rng = np.random.default_rng(0)
-    before = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    before = onnxruntime.InferenceSession(as_it_was, providers=["CPUExecutionProvider"])
     after = onnxruntime.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
     for points in (1, 4, 9, 16):
         x = np.concatenate([rng.random((2, points, 3)) * 0.1, rng.normal(size=(2, points, 3)) * 0.01], axis=-1)
