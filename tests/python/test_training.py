@@ -30,7 +30,7 @@ from nak_training.export import export
 from nak_training.force_report import write_force_report
 from nak_training.kelvinlet import Prior, pad_points
 from nak_training.models import Grasped, MeshGNN, build
-from nak_training.reduced import Ensemble, GraspEncoder, InteractionGraph
+from nak_training.reduced import Encoder, Ensemble, GraspEncoder, InteractionGraph
 from nak_training.reduced_train import ReducedTrainer, load_reduced
 from nak_training.served import Nak
 from nak_training.static_sizes import fold_static_sizes, refold_interaction_graph
@@ -552,6 +552,12 @@ def test_the_grasp_encoder_sees_grasps_whatever_their_order_or_padding(coarse_da
         grown = net.encoder(torch.cat([interaction, centroid], 1))
     assert torch.allclose(g, shuffled, atol=1e-5) and torch.allclose(g, padded, atol=1e-5)
     assert float((grown - g).norm()) > 1e-4 * float(g.norm())
+    # A force head reads each point's grasp size from the features (their log count), not by counting
+    # the points that move alike again: the two agree.
+    _, features, _ = member.encode(interaction)
+    counted = Encoder.grasp_sizes(member, features)
+    assert torch.allclose(member.grasp_sizes(features), counted, rtol=1e-6)
+    assert counted.flatten().tolist() == [3, 3, 3, 2, 2]
 
 
 def test_exported_graphs_read_no_fixed_size_at_run_time_and_older_ones_are_folded_alike(

@@ -88,6 +88,10 @@ class Encoder(nn.Module):
         first) and the set's summary [B, 2W], the last two for a force head."""
         raise NotImplementedError
 
+    def grasp_sizes(self, features: torch.Tensor) -> torch.Tensor:
+        """[B, K, 1]: the number of points in each point's grasp, from the point features `encode` gave."""
+        return same_grasp(features).sum(-1, keepdim=True)
+
 
 def pool(e: torch.Tensor, mask: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor | None]:
     """[mean, max] over the points of e [B, K, d] (real points only, under `mask`), and the mask's
@@ -199,6 +203,11 @@ class GraspEncoder(Encoder):
         share = 1.0 / size if mask is None else mask.unsqueeze(-1).to(f.dtype) / size
         return (per_point * share).sum(1) * self.g_scale, features, summary
 
+    def grasp_sizes(self, features: torch.Tensor) -> torch.Tensor:
+        """The count the features carry (their last, its log): two operators a request where counting
+        the points that move alike again takes eight, a third of a force head's."""
+        return features[..., -1:].exp()
+
 
 def split_linear(first: nn.Module, per_point: list[torch.Tensor], summary: torch.Tensor) -> torch.Tensor:
     """The Linear `first` over [per-point inputs [B, K, ·]…, summary [B, S]], its summary columns applied
@@ -240,6 +249,9 @@ class Ensemble(Encoder):
         g = torch.stack([g for g, _, _ in outputs]).mean(0)
         return g, outputs[0][1], outputs[0][2]
 
+    def grasp_sizes(self, features: torch.Tensor) -> torch.Tensor:
+        return self.encoders[0].grasp_sizes(features)
+
 
 class ForceHead(nn.Module):
     """The force (N) on each interaction point: its grasp's share of (A_k û_k + c_k) · f_scale, with
@@ -254,6 +266,7 @@ class ForceHead(nn.Module):
     point features, which with the grasp encoder include the size."""
 
     f_scale: torch.Tensor
+    row_sums: torch.Tensor
 
     def __init__(self, width: int, hidden: int, point_features: int = Encoder.POINT_FEATURES) -> None:
         """`width`: the encoder's (its summary has 2 × width values); `hidden`: the head's own, which sets
@@ -262,12 +275,18 @@ class ForceHead(nn.Module):
         self.first = nn.Linear(point_features + 2 * width, hidden)
         self.rest = nn.Sequential(nn.GELU(), nn.Linear(hidden, hidden), nn.GELU(), nn.Linear(hidden, 12))
         self.register_buffer("f_scale", torch.ones(1))
+        # [9, 3]: 1 at (3i + j, i), summing each row of A (row-major, the MLP's first nine outputs).
+        self.register_buffer("row_sums", torch.eye(3).repeat_interleave(3, dim=0), persistent=False)
 
-    def forward(self, points: torch.Tensor, summary: torch.Tensor) -> torch.Tensor:
+    def forward(self, points: torch.Tensor, summary: torch.Tensor, grasp_sizes: torch.Tensor) -> torch.Tensor:
+        """`grasp_sizes` [B, K, 1]: the encoder's count of each point's grasp (`Encoder.grasp_sizes`).
+
+        A_k û_k is taken as (A_k's entries ⊙ û_k three times) @ `row_sums`, flat: the [3, 3] reshape of
+        a tensor whose leading axes are dynamic costs ONNX Runtime five operators a request, this two."""
         out = self.rest(split_linear(self.first, [points], summary))
-        a = out[..., :9].unflatten(-1, (3, 3))
-        alike = same_grasp(points).sum(-1, keepdim=True)  # [B, K, 1]
-        return ((a * points[..., 3:6].unsqueeze(-2)).sum(-1) + out[..., 9:]) * (self.f_scale / alike)
+        u = points[..., 3:6]
+        a_u = (out[..., :9] * torch.cat([u, u, u], dim=-1)) @ self.row_sums
+        return (a_u + out[..., 9:]) * (self.f_scale / grasp_sizes)
 
 
 class Trunk(nn.Module):
@@ -319,7 +338,7 @@ class ReducedNet(nn.Module):
     ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """g [B, M] and, with a force head, the force on each point [B, K, 3]."""
         g, f, summary = self.encoder.encode(interaction, mask)
-        return g, None if self.forces is None else self.forces(f, summary)
+        return g, None if self.forces is None else self.forces(f, summary, self.encoder.grasp_sizes(f))
 
 
 class InteractionGraph(nn.Module):
