@@ -360,6 +360,42 @@ def test_only_sets_of_another_seed_and_the_same_law_add_to_the_train_split(
         Trainer(served_prior, dataset.joined([more]), tmp_path, log=quiet)
 
 
+def test_holdout_val_trains_on_all_but_the_val_samples_and_is_never_scored_on_a_set_it_trained_on(
+    nak_binary: Path, coarse_data: Path, more_data: Path, tmp_path: Path
+) -> None:
+    """holdout = "val": the test split and the val samples that selection does not take train too (the
+    POD's ceiling is then measured on those val samples), the manifest says so, and scoring the model
+    on its own set or on an added one is refused by name."""
+    dataset = open_dataset(coarse_data)
+    values = tiny_config(architecture="pod", method="base", modes=8, width=32, steps=3)
+    runs = {holdout: tmp_path / holdout for holdout in ("val+test", "val")}
+    trainers = {}
+    for holdout, run in runs.items():
+        run.mkdir()
+        config = parse_config({**values, "holdout": holdout}, "tiny")
+        trainers[holdout] = ReducedTrainer(config, dataset.joined([open_dataset(more_data)]), run, log=quiet)
+    plain, held = trainers["val+test"], trainers["val"]
+    selected = {s.index for s in held.val.samples}
+    assert selected == {s.index for s in plain.val.samples}
+    own = {s.index for s in dataset.load("all").samples}
+    assert (
+        len(held.train)
+        == len(own) - len(selected) + 20
+        == len(plain.train) + len(dataset.load("test")) + len(dataset.load("val")) - len(selected)
+    )
+    assert selected.isdisjoint(s.index for s in held.train.samples[: len(own) - len(selected)])
+    held.run()
+    config = parse_config({**values, "holdout": "val"}, "tiny")
+    export(config, dataset, runs["val"], tmp_path / "models", log=quiet)
+    model = tmp_path / "models" / "tiny"
+    assert tomllib.loads((model / "manifest.toml").read_text())["provenance"]["holdout"] == "val"
+    for data, seed in ((coarse_data, 3), (more_data, 4)):
+        with pytest.raises(TrainingInputError, match=rf"trained on the samples of seed {seed}, which .* holds"):
+            evaluate(model, data, nak_binary, COARSE)
+    with pytest.raises(TrainingInputError, match=r'holdout = "val" needs no prior or the Kelvinlet'):
+        parse_config(tiny_config(method="res", prior="green-linear", holdout="val"), "tiny")
+
+
 @pytest.fixture(scope="module")
 def exported(coarse_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Path, Path]]:
     """A trained and an untrained +Res PointNet exported from the coarse dataset: (models root, runs)."""

@@ -21,6 +21,8 @@ FORMS = ("basis", "graph")
 # linearized about its gravity-preloaded state).
 PRIORS = ("kelvinlet", "green-linear", "green-tangent")
 FORCE_MODES = ("direct", "residual")
+# What of the dataset's own samples training leaves out (TrainConfig.holdout).
+HOLDOUTS = ("val+test", "val")
 SUBSETS = {"single": ("single",), "multi": ("multi",), "all": ("single", "multi")}
 
 
@@ -53,6 +55,11 @@ class TrainConfig:
     encoder: str = "linear"  # linear (more accurate) | pooled (fewer operators, faster)
     basis_precision: str = "f16"
     form: str = "basis"
+    # What of the dataset's own samples training leaves out: "val+test", its val and test splits (test is
+    # where `nak eval` scores it), or "val", only the val samples the run selects on, the rest of val and
+    # all of test training too: for networks scored on a held-out set of another seed, which need no
+    # test split of their own (about a fifth more samples).
+    holdout: str = "val+test"
     # Train on this many samples spread over the train split (0: all): for learning curves.
     train_samples: int = 0
     # POD from the first this many train targets (0: all): the S × S Gram matrix of the POD bounds how
@@ -122,6 +129,7 @@ def parse_config(values: dict[str, Any], origin: str) -> TrainConfig:
         "encoder": ENCODERS,
         "prior": PRIORS,
         "force_mode": FORCE_MODES,
+        "holdout": HOLDOUTS,
     }
     for key, allowed in choices.items():
         if key in values and values[key] not in allowed:
@@ -163,6 +171,12 @@ def parse_config(values: dict[str, Any], origin: str) -> TrainConfig:
     if config.members > 1 and (config.architecture != "pod" or config.method == "reg" or config.forces):
         raise TrainingInputError(
             origin, 'members > 1 (an ensemble) needs architecture = "pod", method base or res, and no forces'
+        )
+    if config.holdout == "val" and config.method == "res" and config.prior != "kelvinlet":
+        # nak serves green-linear's and green-tangent's fields per split (served.py), and this train
+        # split would be parts of three.
+        raise TrainingInputError(
+            origin, f'holdout = "val" needs no prior or the Kelvinlet\'s (method = "res" on {config.prior})'
         )
     if not 0.0 <= config.ema < 1.0:
         raise TrainingInputError(origin, f"ema = {config.ema!r}: must be in [0, 1) (0: no averaging)")

@@ -15,7 +15,7 @@ from typing import Any
 import tomli_w
 
 from .config import TrainConfig
-from .dataset import Dataset
+from .dataset import Dataset, read_json
 from .errors import TrainingInputError
 from .export import CEILING_PREFIX, MANIFEST_HEADER, export
 from .served import Nak
@@ -119,10 +119,26 @@ def scored(model: str, data: Path, nak: Path, mesh: Path, split: str) -> tuple[s
     return name, eval_model_dir(directory, name, data, nak, mesh, split, UNTIMED)
 
 
+def refuse_scoring_on_its_training_set(model_dir: Path, manifest: dict[str, Any], data: Path) -> None:
+    """A model is scored on samples it never trained on: not on a set of a seed whose every sample
+    trained it (a --more-data set, or its own set under holdout = "val")."""
+    provenance = manifest.get("provenance", {})
+    trained = {int(more["seed"]) for more in provenance.get("more_data", [])}
+    if provenance.get("holdout") == "val":
+        trained.add(int(provenance["dataset_seed"]))
+    seed = read_json(data / "dataset.json").get("seed")
+    if seed in trained:
+        raise TrainingInputError(
+            model_dir,
+            f"trained on the samples of seed {seed}, which {data} holds: score it on a set of a seed it never saw",
+        )
+
+
 def evaluate(model_dir: Path, data: Path, nak: Path, mesh: Path, split: str = "test") -> dict[str, Any]:
     """Scores the model in `model_dir` on `split` of `data` and writes its [metrics] (and, for a model
     with learned forces, their error in [forces]); returns the metrics."""
     manifest = read_manifest(model_dir)
+    refuse_scoring_on_its_training_set(model_dir, manifest, data)
     report = eval_model_dir(model_dir, manifest["model"]["name"], data, nak, mesh, split)
     kept = {k: v for k, v in manifest.get("metrics", {}).items() if k == "val_dcm" or k.startswith(CEILING_PREFIX)}
     metrics = {**kept, **metrics_of(report)}

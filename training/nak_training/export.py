@@ -226,6 +226,8 @@ def provenance(config: TrainConfig, dataset: Dataset, summary: dict[str, Any], s
         "dataset_seed": dataset.seed,
         "dataset_single": int(dataset.info["single"]),
         "dataset_multi": int(dataset.info["multi"]),
+        # "val": every sample of the dataset but its val samples trained it (TrainConfig.holdout).
+        "holdout": config.holdout,
         "train_samples": int(summary["train_samples"]),
         # The converged load-step states of the train samples that trained it too (path_states_from).
         **({"path_states": int(summary["path_states"])} if "path_states" in summary else {}),

@@ -26,6 +26,7 @@ from safetensors.numpy import load_file  # noqa: E402
 
 from .dataset import Dataset, is_failed, open_dataset, read_json  # noqa: E402
 from .errors import TrainingInputError  # noqa: E402
+from .evaluate import read_manifest, refuse_scoring_on_its_training_set  # noqa: E402
 from .served import Nak  # noqa: E402
 
 # The linearization the nonlinear networks' forces build on, scored beside them.
@@ -48,8 +49,10 @@ def write_force_report(data: Path, models: list[Path], nak: Path, mesh: Path, ou
     if not truth:
         raise TrainingInputError(data, "its test split stores no grasp forces (regenerate it with nak datagen)")
     for directory in models:
-        if "forces" not in tomllib.loads((directory / "manifest.toml").read_text()):
+        manifest = read_manifest(directory)
+        if "forces" not in manifest:
             raise TrainingInputError(directory, "has no [forces] section: not a model with learned forces")
+        refuse_scoring_on_its_training_set(directory, manifest, data)
     names = [prior, *(d.name for d in models)]
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp) / "models"

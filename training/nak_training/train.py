@@ -120,7 +120,9 @@ class Run:
         self.chunks = dataset.complete_chunks()
         # Each added set with the chunks it had, read as it stood now like the first.
         self.more = [(m, m.complete_chunks()) for m in dataset.more]
-        own = [(dataset, dataset.load("train", config.subsets, self.chunks), self.chunks)]
+        val = dataset.load("val", config.subsets, self.chunks)
+        self.val = spread(val, config.val_samples)
+        own = [(dataset, self._own_train(val), self.chunks)]
         own += [(m, m.load("all", config.subsets, chunks), chunks) for m, chunks in self.more]
         self.train = join([split for _, split, _ in own])
         if config.train_samples:
@@ -134,11 +136,12 @@ class Run:
                 for d, split, chunks in own
             ]
             self.train = join([self.train, *(s for s in states if s is not None)])
-        self.val = spread(dataset.load("val", config.subsets, self.chunks), config.val_samples)
         self.log(
             f"{config.name}: {config.architecture} ({config.size}) {config.method}, {len(self.train)} train / "
             f"{len(self.val)} val samples ({config.subset}), mesh {self.mesh.name} {self.mesh.node_count} nodes"
         )
+        if config.holdout == "val":
+            self.log(f"  train takes every sample of {dataset.root} but the {len(self.val)} val samples (holdout)")
         for m, c in self.more:
             self.log(f"  train adds every sample of {m.root} (seed {m.seed}, {len(c)} of {m.chunk_count()} chunks)")
         if config.path_states_from < 1.0:
@@ -359,6 +362,17 @@ class Run:
                 else {}
             ),
         }
+
+    def _own_train(self, val: Split) -> Split:
+        """The dataset's own samples that train: its train split, and with holdout = "val" its test split
+        and the val samples that `self.val` (selection) does not take as well."""
+        train = self.dataset.load("train", self.config.subsets, self.chunks)
+        if self.config.holdout == "val+test":
+            return train
+        selecting = {s.index for s in self.val.samples}
+        rest = [i for i, s in enumerate(val.samples) if s.index not in selecting]
+        test = self.dataset.load("test", self.config.subsets, self.chunks)
+        return join([train, test, Split([val.samples[i] for i in rest], val.fields[rest])])
 
     def _more_description(self) -> list[dict[str, Any]]:
         """Each added set as the manifest records it: where, seed, size, and the chunks it had if
