@@ -83,6 +83,10 @@ class Split:
     def __len__(self) -> int:
         return len(self.samples)
 
+    def pick(self, rows: list[int]) -> Split:
+        """The samples at `rows`, in that order."""
+        return Split([self.samples[i] for i in rows], self.fields[rows])
+
 
 @dataclass(frozen=True)
 class Dataset:

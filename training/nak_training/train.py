@@ -69,7 +69,7 @@ def dcm(truth: torch.Tensor, estimate: torch.Tensor, volumes: torch.Tensor) -> f
 def spread(split: Split, count: int) -> Split:
     """`count` samples spread evenly over `split` (single-grasper samples come first in a dataset)."""
     keep = torch.linspace(0, len(split) - 1, min(count, len(split))).round().long().unique()
-    return Split([split.samples[int(i)] for i in keep], split.fields[keep])
+    return split.pick(keep.tolist())
 
 
 def fit_epsilon(mesh: Mesh, train: Split, log: Any = print) -> tuple[float, dict[str, float]]:
@@ -120,9 +120,8 @@ class Run:
         self.chunks = dataset.complete_chunks()
         # Each added set with the chunks it had, read as it stood now like the first.
         self.more = [(m, m.complete_chunks()) for m in dataset.more]
-        val = dataset.load("val", config.subsets, self.chunks)
-        self.val = spread(val, config.val_samples)
-        own = [(dataset, self._own_train(val), self.chunks)]
+        self.val, own_train = self._own_splits()
+        own = [(dataset, own_train, self.chunks)]
         own += [(m, m.load("all", config.subsets, chunks), chunks) for m, chunks in self.more]
         self.train = join([split for _, split, _ in own])
         if config.train_samples:
@@ -363,16 +362,20 @@ class Run:
             ),
         }
 
-    def _own_train(self, val: Split) -> Split:
-        """The dataset's own samples that train: its train split, and with holdout = "val" its test split
-        and the val samples that `self.val` (selection) does not take as well."""
-        train = self.dataset.load("train", self.config.subsets, self.chunks)
-        if self.config.holdout == "val+test":
-            return train
-        selecting = {s.index for s in self.val.samples}
-        rest = [i for i, s in enumerate(val.samples) if s.index not in selecting]
-        test = self.dataset.load("test", self.config.subsets, self.chunks)
-        return join([train, test, Split([val.samples[i] for i in rest], val.fields[rest])])
+    def _own_splits(self) -> tuple[Split, Split]:
+        """The dataset's own samples that select the checkpoint (`val_samples` spread over its val split)
+        and those that train: its train split, or with holdout = "val" every other sample, read in one
+        pass over the chunks."""
+        c = self.config
+        if c.holdout == "val+test":
+            val = spread(self.dataset.load("val", c.subsets, self.chunks), c.val_samples)
+            return val, self.dataset.load("train", c.subsets, self.chunks)
+        own = self.dataset.load("all", c.subsets, self.chunks)
+        val = spread(own.pick([i for i, s in enumerate(own.samples) if s.split == "val"]), c.val_samples)
+        selecting = {s.index for s in val.samples}
+        rest = [i for i, s in enumerate(own.samples) if s.index not in selecting]
+        # Train, then test, then val samples, as runs before this one pass read them.
+        return val, own.pick(sorted(rest, key=lambda i: ("train", "test", "val").index(own.samples[i].split)))
 
     def _more_description(self) -> list[dict[str, Any]]:
         """Each added set as the manifest records it: where, seed, size, and the chunks it had if
