@@ -135,6 +135,8 @@ def test_bad_input_is_refused_naming_the_file_or_key(coarse_data: Path, tmp_path
         parse_config(tiny_config(forces=True), "x.toml")
     with pytest.raises(TrainingInputError, match=r'force_mode = "residual" .* green-linear or green-tangent'):
         parse_config(tiny_config(architecture="pod", forces=True, force_mode="residual"), "x.toml")
+    with pytest.raises(TrainingInputError, match=r"force_reads_field = true needs forces = true"):
+        parse_config(tiny_config(architecture="pod", force_reads_field=True), "x.toml")
     bad = tmp_path / "bad.toml"
     bad.write_text('name = "x"\narchitecture = "pointnet"\nmethod = "res"\nepsilon = "large"\n')
     with pytest.raises(TrainingInputError, match=r"bad.toml: epsilon = 'large'"):
@@ -680,15 +682,22 @@ def test_a_network_on_a_green_prior_is_trained_and_served_on_it(
 
 
 @pytest.mark.parametrize(
-    ("prior", "encoder"), [("kelvinlet", "linear"), ("green-linear", "linear"), ("kelvinlet", "grasps")]
+    ("prior", "encoder", "ensemble"),
+    [
+        ("kelvinlet", "linear", False),
+        ("green-linear", "linear", False),
+        ("kelvinlet", "grasps", False),
+        ("kelvinlet", "grasps", True),
+    ],
 )
 def test_a_force_head_is_trained_exported_and_served_as_the_sum_of_its_point_forces(
-    nak_binary: Path, coarse_data: Path, tmp_path: Path, prior: str, encoder: str
+    nak_binary: Path, coarse_data: Path, tmp_path: Path, prior: str, encoder: str, ensemble: bool
 ) -> None:
     """forces = true: the graph gains `forces` [B, K, 3], checked against onnxruntime at export; the
     manifest says how nak serves them (direct on the Kelvinlet; on green-linear, residual: added to its
     exact forces); nak serves each grasp's sum; training lowers the error nak eval measures. The grasp
-    encoder gives the head its grasp's size and shape too."""
+    encoder gives the head its grasp's size and shape too. An ensemble (whose heads here also read the
+    field's coefficients) serves the mean of its members' heads."""
     dataset = open_dataset(coarse_data)
     nak = Nak(nak_binary, COARSE)
     models = tmp_path / "models"
@@ -696,6 +705,8 @@ def test_a_force_head_is_trained_exported_and_served_as_the_sum_of_its_point_for
     for name, steps, lr in (("trained", 300, 3e-3), ("untrained", 1, 1e-12)):
         values = dict(name=name, architecture="pod", prior=prior, encoder=encoder, modes=8, width=32)
         values.update(steps=steps, batch=8, lr=lr)
+        if ensemble:
+            values.update(members=3, force_reads_field=True)
         mode = "direct" if prior == "kelvinlet" else "residual"
         config = parse_config(
             tiny_config(**values, forces=True, force_mode=mode, force_weight=1.0, val_every=100), "tiny"
@@ -750,6 +761,15 @@ def test_a_force_head_is_trained_exported_and_served_as_the_sum_of_its_point_for
         )
         expected = expected + load_file(str(out))["grasp_forces"][row]
     assert np.abs(served - expected).max() <= 1e-4 * np.abs(expected).max(), (served, expected)
+    if ensemble:
+        config = load_config(models / "trained" / "config.toml")
+        net, _ = load_reduced(tmp_path / "trained", config)
+        assert len(net.force_heads) == 3
+        with torch.no_grad():
+            points = torch.from_numpy(interaction[None]).float()
+            each = [net.encode_member(i, points)[1] for i in range(3)]
+            mean = torch.stack([f for f in each if f is not None]).mean(0)[0].numpy()
+        assert np.abs(mean - point_forces[0]).max() <= 1e-4 * np.abs(point_forces).max()
     if prior != "kelvinlet" or encoder != "linear":
         return
     # The force report: the prior and the network per subset, the figure, and the head's cost.

@@ -79,6 +79,8 @@ class TrainConfig:
     force_mode: str = "direct"
     # The force head's width: its cost per interaction point.
     force_width: int = 64
+    # The force head also reads the field's M coefficients (once a set, beside the encoder's summary).
+    force_reads_field: bool = False
     # POD networks: an ensemble of this many encoders, each trained on its own batches, served as the
     # mean of their coefficients in one graph (1: one encoder).
     members: int = 1
@@ -166,12 +168,12 @@ def parse_config(values: dict[str, Any], origin: str) -> TrainConfig:
             origin,
             'force_mode = "residual" adds to the prior\'s forces: it needs method = "res" on green-linear or green-tangent',
         )
+    if config.force_reads_field and not config.forces:
+        raise TrainingInputError(origin, "force_reads_field = true needs forces = true: it shapes the force head")
     if not config.force_weight >= 0:
         raise TrainingInputError(origin, f"force_weight = {config.force_weight!r}: must be 0 or more")
-    if config.members > 1 and (config.architecture != "pod" or config.method == "reg" or config.forces):
-        raise TrainingInputError(
-            origin, 'members > 1 (an ensemble) needs architecture = "pod", method base or res, and no forces'
-        )
+    if config.members > 1 and (config.architecture != "pod" or config.method == "reg"):
+        raise TrainingInputError(origin, 'members > 1 (an ensemble) needs architecture = "pod", method base or res')
     if config.holdout == "val" and config.method == "res" and config.prior != "kelvinlet":
         # nak serves green-linear's and green-tangent's fields per split (served.py), and this train
         # split would be parts of three.

@@ -249,9 +249,6 @@ class Ensemble(Encoder):
         g = torch.stack([g for g, _, _ in outputs]).mean(0)
         return g, outputs[0][1], outputs[0][2]
 
-    def grasp_sizes(self, features: torch.Tensor) -> torch.Tensor:
-        return self.encoders[0].grasp_sizes(features)
-
 
 class ForceHead(nn.Module):
     """The force (N) on each interaction point: its grasp's share of (A_k û_k + c_k) · f_scale, with
@@ -268,11 +265,14 @@ class ForceHead(nn.Module):
     f_scale: torch.Tensor
     row_sums: torch.Tensor
 
-    def __init__(self, width: int, hidden: int, point_features: int = Encoder.POINT_FEATURES) -> None:
+    def __init__(
+        self, width: int, hidden: int, point_features: int = Encoder.POINT_FEATURES, coefficients: int = 0
+    ) -> None:
         """`width`: the encoder's (its summary has 2 × width values); `hidden`: the head's own, which sets
-        its cost per point; `point_features`: what the encoder gives of each point."""
+        its cost per point; `point_features`: what the encoder gives of each point; `coefficients`: how
+        many of the network's own coefficients it reads beside the summary (0: none)."""
         super().__init__()
-        self.first = nn.Linear(point_features + 2 * width, hidden)
+        self.first = nn.Linear(point_features + 2 * width + coefficients, hidden)
         self.rest = nn.Sequential(nn.GELU(), nn.Linear(hidden, hidden), nn.GELU(), nn.Linear(hidden, 12))
         self.register_buffer("f_scale", torch.ones(1))
         # [9, 3]: 1 at (3i + j, i), summing each row of A (row-major, the MLP's first nine outputs).
@@ -319,8 +319,10 @@ class ReducedNet(nn.Module):
         encoder: str = "linear",
         force_width: int | None = None,
         members: int = 1,
+        force_reads_field: bool = False,
     ) -> None:
-        """`force_width`: the force head's width (None: no force head); `members`: encoders averaged."""
+        """`force_width`: the force head's width (None: no force head); `members`: encoders averaged;
+        `force_reads_field`: the force head also reads the field's coefficients (normalized), once a set."""
         super().__init__()
 
         kinds: dict[str, Callable[[int, int], Encoder]] = {
@@ -331,14 +333,47 @@ class ReducedNet(nn.Module):
         encoders = [kinds[encoder](modes, width) for _ in range(members)]
         self.encoder: Encoder = encoders[0] if members == 1 else Ensemble(encoders)
         self.trunk = Trunk(modes, width) if architecture == "deeponet" else None
-        self.forces = None if force_width is None else ForceHead(width, force_width, encoders[0].POINT_FEATURES)
+        self.force_reads_field = force_reads_field
+        read = modes if force_reads_field else 0
+        # An ensemble's members each have a head, fed by their own features, and serve the mean force.
+        heads = [] if force_width is None else [ForceHead(width, force_width, e.POINT_FEATURES, read) for e in encoders]
+        self.forces: nn.Module | None = None if not heads else heads[0] if members == 1 else nn.ModuleList(heads)
+
+    @property
+    def members(self) -> list[Encoder]:
+        return self.encoder.encoders if isinstance(self.encoder, Ensemble) else [self.encoder]
+
+    @property
+    def force_heads(self) -> list[ForceHead]:
+        """One per member; none without forces."""
+        if isinstance(self.forces, nn.ModuleList):
+            return [cast(ForceHead, head) for head in self.forces]
+        return [] if self.forces is None else [cast(ForceHead, self.forces)]
 
     def encode(
         self, interaction: torch.Tensor, mask: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """g [B, M] and, with a force head, the force on each point [B, K, 3]."""
-        g, f, summary = self.encoder.encode(interaction, mask)
-        return g, None if self.forces is None else self.forces(f, summary, self.encoder.grasp_sizes(f))
+        """g [B, M] and, with force heads, the force on each point [B, K, 3]: an ensemble's means."""
+        if self.forces is None:
+            return self.encoder(interaction, mask), None
+        outputs = [self.encode_member(i, interaction, mask) for i in range(len(self.members))]
+        if len(outputs) == 1:
+            return outputs[0]
+        g = torch.stack([g for g, _ in outputs]).mean(0)
+        forces = torch.stack([f for _, f in outputs if f is not None]).mean(0)
+        return g, forces
+
+    def encode_member(
+        self, member: int, interaction: torch.Tensor, mask: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """One member's g and, with force heads, its head's force on each point."""
+        encoder = self.members[member]
+        g, f, summary = encoder.encode(interaction, mask)
+        if self.forces is None:
+            return g, None
+        if self.force_reads_field:
+            summary = torch.cat([summary, g / encoder.g_scale], dim=-1)
+        return g, self.force_heads[member](f, summary, encoder.grasp_sizes(f))
 
 
 class InteractionGraph(nn.Module):

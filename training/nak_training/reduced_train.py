@@ -112,8 +112,9 @@ class ReducedTrainer(Run):
         net = reduced_net(config)
         self.train_forces = self._grasp_forces(self.train, "train", self.train_points.shape[1])
         self.val_forces = self._grasp_forces(self.val, "val", self.val_points.shape[1])
-        if net.forces is not None and self.train_forces is not None:
-            net.forces.f_scale.copy_(self.train_forces.scale())
+        if self.train_forces is not None:
+            for head in net.force_heads:
+                head.f_scale.copy_(self.train_forces.scale())
         positions = self.mesh.positions
         u = self.train_points[..., 3:][self.train_mask]
         net.encoder.set_statistics(x_mean=positions.mean(0), x_std=positions.std(0), u_scale=(u**2).mean(0).sqrt())
@@ -209,13 +210,18 @@ class ReducedTrainer(Run):
         return self._descend(loss)
 
     def _ensemble_step(self, ensemble: Ensemble) -> float:
-        """Each member on its own batch, towards the POD coefficients (the config allows no other)."""
+        """Each member (and its force head) on its own batch, towards the POD coefficients (the config
+        allows no other)."""
+        c = self.config
         p = self.train_projection
         losses = []
-        for member in ensemble.encoders:
-            picks = torch.randint(len(self.train), (self.config.batch,), generator=self.generator)
-            g = member(self.train_points[picks], self.train_mask[picks])
-            losses.append(self._coefficient_error(g, p["g"][picks], p["missed"][picks], self.train_norm[picks]).mean())
+        for member in range(len(ensemble.encoders)):
+            picks = torch.randint(len(self.train), (c.batch,), generator=self.generator)
+            g, forces = self.model.encode_member(member, self.train_points[picks], self.train_mask[picks])
+            loss = self._coefficient_error(g, p["g"][picks], p["missed"][picks], self.train_norm[picks]).mean()
+            if forces is not None and self.train_forces is not None:
+                loss = loss + c.force_weight * self.train_forces.relative_errors(forces, picks).mean().float()
+            losses.append(loss)
         return self._descend(torch.stack(losses).mean())
 
     @staticmethod
@@ -281,7 +287,13 @@ class ReducedTrainer(Run):
 def reduced_net(config: TrainConfig) -> ReducedNet:
     """The untrained network `config` describes."""
     return ReducedNet(
-        config.architecture, config.modes, config.width, config.encoder, config.head_width, config.members
+        config.architecture,
+        config.modes,
+        config.width,
+        config.encoder,
+        config.head_width,
+        config.members,
+        config.force_reads_field,
     )
 
 
