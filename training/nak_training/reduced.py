@@ -336,6 +336,7 @@ class ReducedNet(nn.Module):
         self.force_reads_field = force_reads_field
         read = modes if force_reads_field else 0
         # An ensemble's members each have a head, fed by their own features, and serve the mean force.
+        # One encoder keeps its head unlisted, so its weights keep the names shipped models were saved with.
         heads = [] if force_width is None else [ForceHead(width, force_width, e.POINT_FEATURES, read) for e in encoders]
         self.forces: nn.Module | None = None if not heads else heads[0] if members == 1 else nn.ModuleList(heads)
 

@@ -205,9 +205,7 @@ class ReducedTrainer(Run):
             loss = self._field_error(g, query, target, (truth**2).sum(-1) @ self.volumes[query]).mean()
         if self.q is not None:
             loss = loss + c.lambda_reg * self._regularization()
-        if forces is not None and self.train_forces is not None:
-            loss = loss + c.force_weight * self.train_forces.relative_errors(forces, picks).mean().float()
-        return self._descend(loss)
+        return self._descend(loss + self._force_loss(forces, picks))
 
     def _ensemble_step(self, ensemble: Ensemble) -> float:
         """Each member (and its force head) on its own batch, towards the POD coefficients (the config
@@ -219,10 +217,14 @@ class ReducedTrainer(Run):
             picks = torch.randint(len(self.train), (c.batch,), generator=self.generator)
             g, forces = self.model.encode_member(member, self.train_points[picks], self.train_mask[picks])
             loss = self._coefficient_error(g, p["g"][picks], p["missed"][picks], self.train_norm[picks]).mean()
-            if forces is not None and self.train_forces is not None:
-                loss = loss + c.force_weight * self.train_forces.relative_errors(forces, picks).mean().float()
-            losses.append(loss)
+            losses.append(loss + self._force_loss(forces, picks))
         return self._descend(torch.stack(losses).mean())
+
+    def _force_loss(self, forces: torch.Tensor | None, picks: torch.Tensor) -> torch.Tensor | float:
+        """force_weight × the mean relative grasp-force error of the samples `picks` (0 without forces)."""
+        if forces is None or self.train_forces is None:
+            return 0.0
+        return self.config.force_weight * self.train_forces.relative_errors(forces, picks).mean().float()
 
     @staticmethod
     def _coefficient_error(g: torch.Tensor, target: torch.Tensor, missed: Any, norm: torch.Tensor) -> torch.Tensor:
