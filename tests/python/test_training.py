@@ -30,7 +30,7 @@ from nak_training.export import export
 from nak_training.force_report import write_force_report
 from nak_training.kelvinlet import Prior, pad_points
 from nak_training.models import Grasped, MeshGNN, build
-from nak_training.reduced import Encoder, Ensemble, GraspEncoder, InteractionGraph
+from nak_training.reduced import Encoder, Ensemble, GraspEncoder, InteractionGraph, weighted_basis
 from nak_training.reduced_train import ReducedTrainer, load_reduced
 from nak_training.served import Nak
 from nak_training.static_sizes import fold_static_sizes, refold_interaction_graph
@@ -179,6 +179,22 @@ def test_bad_input_is_refused_naming_the_file_or_key(coarse_data: Path, tmp_path
     (shard / "dataset.json").write_text(json.dumps({**described, "shard": {"index": 1, "count": 4}}))
     with pytest.raises(TrainingInputError, match=r"holds shard 1/4 of a dataset, not the whole: join"):
         open_dataset(shard)
+
+
+def test_the_pod_built_in_blocks_is_the_svd_of_the_volume_weighted_fields() -> None:
+    """Blocks that do not divide the sample count, against an SVD of the whole weighted matrix: the
+    same singular values, and modes orthonormal in L2(Ω) spanning the same leading subspace."""
+    generator = torch.Generator().manual_seed(0)
+    fields = torch.randn(11, 5, 3, generator=generator) * torch.linspace(1, 3, 11).reshape(11, 1, 1)
+    volumes = torch.rand(5, generator=generator) + 0.5
+    basis, singular = weighted_basis(fields, volumes, modes=4, block=3)
+    sqrt_v = volumes.double().sqrt().repeat_interleave(3)
+    x = fields.reshape(11, -1).double() * sqrt_v
+    _, reference, vt = torch.linalg.svd(x, full_matrices=False)
+    assert torch.allclose(singular, reference[:4], rtol=1e-10)
+    psi = basis.reshape(15, 4) * sqrt_v.unsqueeze(1)
+    assert torch.allclose(psi.T @ psi, torch.eye(4, dtype=torch.float64), atol=1e-10)
+    assert torch.allclose((vt[:4] @ psi).abs(), torch.eye(4, dtype=torch.float64), atol=1e-8)
 
 
 def test_an_interrupted_run_resumes_to_the_same_weights(coarse_data: Path, tmp_path: Path) -> None:
