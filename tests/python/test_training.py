@@ -197,6 +197,21 @@ def test_the_pod_built_in_blocks_is_the_svd_of_the_volume_weighted_fields() -> N
     assert torch.allclose((vt[:4] @ psi).abs(), torch.eye(4, dtype=torch.float64), atol=1e-8)
 
 
+def test_the_randomized_pod_finds_the_leading_modes_of_a_set_wider_than_its_sketch() -> None:
+    """200 samples of 8 patterns and a little noise, sketched 12 wide: the 4 leading singular values
+    and modes of the SVD, to the precision the noise allows."""
+    generator = torch.Generator().manual_seed(1)
+    patterns = torch.randn(8, 60, generator=generator) * torch.tensor([40, 20, 10, 5, 3, 2, 1.5, 1.0]).unsqueeze(1)
+    fields = torch.randn(200, 8, generator=generator) @ patterns + 1e-3 * torch.randn(200, 60, generator=generator)
+    volumes = torch.rand(20, generator=generator) + 0.5
+    basis, singular = weighted_basis(fields.reshape(200, 20, 3), volumes, modes=4, oversample=8)
+    sqrt_v = volumes.double().sqrt().repeat_interleave(3)
+    _, reference, vt = torch.linalg.svd(fields.double() * sqrt_v, full_matrices=False)
+    assert torch.allclose(singular, reference[:4], rtol=1e-8)
+    psi = basis.reshape(60, 4) * sqrt_v.unsqueeze(1)
+    assert torch.allclose((vt[:4] @ psi).abs(), torch.eye(4, dtype=torch.float64), atol=1e-6)
+
+
 def test_an_interrupted_run_resumes_to_the_same_weights(coarse_data: Path, tmp_path: Path) -> None:
     dataset = open_dataset(coarse_data)
     config = parse_config(tiny_config(method="reg"), "tiny")
