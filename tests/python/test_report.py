@@ -9,7 +9,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.text import Annotation  # noqa: E402
-from nak_training.report import Entry, learning_curve, place_labels, table  # noqa: E402
+from nak_training.report import Entry, learning_curve, place_labels, recipe, table  # noqa: E402
 
 
 def test_names_of_neighbouring_points_do_not_overlap() -> None:
@@ -67,6 +67,19 @@ def test_the_learning_curve_orders_a_configurations_sizes_and_skips_other_models
     ]
     assert (tmp_path / "curve.png").is_file()
     assert learning_curve([entry("pod-base-nl", 1577, 71.0)], tmp_path / "none.png") == []
+
+
+def test_a_recipe_is_how_a_model_trains_not_on_what_or_how_many_threads(tmp_path: Path) -> None:
+    def config(name: str, body: str) -> Path:
+        path = tmp_path / f"{name}.toml"
+        path.write_text(f'name = "{name}"\nlr = 2e-3\n{body}')
+        return path
+
+    plain = recipe(config("pod-base-nl", ""))
+    assert recipe(config("pod-base-more-nl", 'holdout = "val"\nthreads = 1\ntrain_samples = 0\n')) == plain
+    assert recipe(config("pod-base-nl-n1600", "train_samples = 1600\n")) == plain
+    assert recipe(config("pod-base-lr-nl", "weight_decay = 1e-3\n")) != plain
+    assert recipe(tmp_path / "missing.toml") == ""
 
 
 def test_res_on_each_green_prior_gets_a_row_of_its_own() -> None:

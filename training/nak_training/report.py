@@ -104,10 +104,12 @@ def read_models(roots: list[Path]) -> list[Entry]:
 
 
 def recipe(config_path: Path) -> str:
+    """How a configuration trains, without what it trains on (its name, sample count and held-out split)
+    or on how many threads: two models of one recipe are points of one learning curve."""
     if not config_path.is_file():
         return ""
     config = tomllib.loads(config_path.read_text())
-    for key in ("name", "train_samples"):
+    for key in ("name", "train_samples", "holdout", "threads"):
         config.pop(key, None)
     return json.dumps(config, sort_keys=True)
 
