@@ -181,9 +181,9 @@ def test_bad_input_is_refused_naming_the_file_or_key(coarse_data: Path, tmp_path
         open_dataset(shard)
 
 
-def test_the_pod_built_in_blocks_is_the_svd_of_the_volume_weighted_fields() -> None:
-    """Blocks that do not divide the sample count, against an SVD of the whole weighted matrix: the
-    same singular values, and modes orthonormal in L2(Ω) spanning the same leading subspace."""
+def test_the_pod_of_a_set_no_wider_than_its_sketch_is_the_svd_of_its_weighted_fields() -> None:
+    """11 samples, read in blocks of 3 that do not divide them, against an SVD of the whole weighted
+    matrix: the same singular values, and modes orthonormal in L2(Ω) spanning the same subspace."""
     generator = torch.Generator().manual_seed(0)
     fields = torch.randn(11, 5, 3, generator=generator) * torch.linspace(1, 3, 11).reshape(11, 1, 1)
     volumes = torch.rand(5, generator=generator) + 0.5
