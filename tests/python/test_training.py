@@ -30,8 +30,10 @@ from nak_training.export import export
 from nak_training.force_report import write_force_report
 from nak_training.kelvinlet import Prior, pad_points
 from nak_training.models import Grasped, MeshGNN, build
-from nak_training.reduced import Encoder, Ensemble, GraspEncoder, InteractionGraph, weighted_basis
+from nak_training.grasp_served import ServedGraspNet
+from nak_training.reduced import Encoder, Ensemble, GraspEncoder, InteractionGraph, ReducedNet, weighted_basis
 from nak_training.reduced_train import ReducedTrainer, load_reduced
+from nak_training.reform import batch_is_fixed, reform
 from nak_training.served import Nak
 from nak_training.static_sizes import fold_static_sizes, refold_interaction_graph
 from nak_training.train import Trainer
@@ -629,6 +631,110 @@ def test_the_grasp_encoder_sees_grasps_whatever_their_order_or_padding(coarse_da
     assert counted.flatten().tolist() == [3, 3, 3, 2, 2]
 
 
+def older_graph(net: ReducedNet, interaction: torch.Tensor, directory: Path) -> Path:
+    """`net`'s graph in `directory` as export wrote it before it folded sizes or wrote served forms."""
+    directory.mkdir(parents=True, exist_ok=True)
+    torch.onnx.export(
+        InteractionGraph(net, None, torch.zeros(0, 3), folded=False),
+        (interaction,),
+        str(directory / "model.onnx"),
+        input_names=["interaction"],
+        output_names=["coefficients"],
+        dynamic_axes={"interaction": {0: "batch", 1: "points"}, "coefficients": {0: "batch"}},
+        opset_version=17,
+        dynamo=False,
+    )
+    return directory
+
+
+def request_of(grasps: list[tuple[int, list[float]]], seed: int) -> torch.Tensor:
+    """interaction [1, K, 6]: for each (point count, displacement), that many points near the phantom."""
+    rng = torch.Generator().manual_seed(seed)
+    rows = [
+        torch.cat([torch.tensor([0.05, 0.02, 0.1]) + 0.03 * torch.randn(3, generator=rng), torch.tensor(u)])
+        for count, u in grasps
+        for _ in range(count)
+    ]
+    return torch.stack(rows)[None]
+
+
+@pytest.mark.parametrize("members,force_width,reads_field", [(3, None, False), (1, 16, False), (2, 16, True)])
+def test_the_served_form_of_grasp_encoders_answers_as_they_do(
+    members: int, force_width: int | None, reads_field: bool
+) -> None:
+    """Per grasp and sharing what members share (grasp_served.py), for one grasp or several, grasps of
+    one point, points in any order, the field's coefficients and the forces are the network's."""
+    torch.manual_seed(members)
+    net = ReducedNet("pod", 8, 32, "grasps", force_width, members, reads_field)
+    statistics = dict(x_mean=torch.tensor([0.05, 0.02, 0.1]), x_std=torch.tensor([0.05, 0.04, 0.06]))
+    for member in net.members:
+        member.set_statistics(**statistics, u_scale=torch.full((3,), 0.01), g_scale=torch.rand(8) + 0.5)
+    net.eval()
+    served = ServedGraspNet(net).eval()
+    requests = [
+        [(1, [0.0, 0.0, 0.02])],
+        [(9, [0.01, -0.02, 0.0])],
+        [(7, [0.01, 0.0, 0.0]), (4, [0.0, 0.0, -0.02])],
+        [(3, [0.01, 0.0, 0.0]), (1, [0.0, 0.01, 0.0]), (5, [0.0, 0.0, 0.01])],
+    ]
+    for seed, grasps in enumerate(requests):
+        interaction = request_of(grasps, seed)
+        shuffled = interaction[:, torch.randperm(interaction.shape[1])]
+        with torch.no_grad():
+            expected, expected_forces = net.encode(interaction)
+            g, forces = served(interaction)
+            g_shuffled, _ = served(shuffled)
+        assert float((g - expected).norm()) <= 1e-5 * float(expected.norm()), grasps
+        assert float((g_shuffled - expected).norm()) <= 1e-5 * float(expected.norm()), grasps
+        if force_width is None:
+            assert forces is None and expected_forces is None
+        else:
+            assert forces is not None and expected_forces is not None
+            assert float((forces - expected_forces).norm()) <= 1e-5 * float(expected_forces.norm()), grasps
+    if members > 1:
+        net.members[1].set_statistics(r_scale=torch.tensor([2.0]))
+        with pytest.raises(ValueError, match="r_scale differ"):
+            ServedGraspNet(net)
+
+
+def test_a_shipped_graph_is_rewritten_in_its_served_form_from_its_own_weights(
+    coarse_data: Path, reduced: Path, tmp_path: Path
+) -> None:
+    """Run directories are not committed: `serve-form` reads the network back from an older graph's
+    weights, and writes the served form only where both answer as the graph did."""
+    config = load_config(reduced / "pod-grasps" / "config.toml")
+    net, _ = load_reduced(reduced.parent / "reduced-runs" / "pod-grasps", config)
+    assert batch_is_fixed(onnx.load(str(reduced / "pod-grasps" / "model.onnx")))  # export writes the served form
+    positions = open_dataset(coarse_data).mesh.positions
+    interaction = torch.cat([positions[:7].float(), torch.tensor([[0.01, 0.0, 0.0]] * 4 + [[0.0, 0.0, -0.01]] * 3)], 1)
+    shipped = older_graph(net, interaction[None], tmp_path / "shipped")
+    shutil.copy(reduced / "pod-grasps" / "config.toml", shipped / "config.toml")
+    before = len(onnx.load(str(shipped / "model.onnx")).graph.node)
+
+    said = reform(shipped)
+    assert "served form" in said and "answers as before" in said, said
+    rewritten = onnx.load(str(shipped / "model.onnx"))
+    assert batch_is_fixed(rewritten) and len(rewritten.graph.node) < before
+    with torch.no_grad():
+        expected = net.encoder(interaction[None]).numpy()
+    session = onnxruntime.InferenceSession(str(shipped / "model.onnx"))
+    (got,) = session.run(None, {"interaction": interaction[None].numpy()})
+    assert np.abs(got - expected).max() <= 1e-5 * np.abs(expected).max()
+    assert "already in the served form" in reform(shipped)
+
+    # A configuration that is not the graph's network is refused, naming the weight that does not fit.
+    other = older_graph(net, interaction[None], tmp_path / "other")
+    (other / "config.toml").write_text(
+        (shipped / "config.toml").read_text().replace("width = 32", "width = 16"), encoding="utf-8"
+    )
+    with pytest.raises(TrainingInputError, match=r"is \[32, 10\] in the graph, \[16, 10\] in its configuration"):
+        reform(other)
+    pooled = tmp_path / "pooled"
+    shutil.copytree(reduced / "deeponet-reg", pooled)
+    with pytest.raises(TrainingInputError, match="only POD networks of grasp encoders"):
+        reform(pooled)
+
+
 def test_exported_graphs_read_no_fixed_size_at_run_time_and_older_ones_are_folded_alike(
     coarse_data: Path, reduced: Path, tmp_path: Path
 ) -> None:
@@ -639,20 +745,9 @@ def test_exported_graphs_read_no_fixed_size_at_run_time_and_older_ones_are_folde
     assert fold_static_sizes(onnx.load(str(reduced / "pod-grasps" / "model.onnx"))) == 0
 
     older = tmp_path / "older"
-    older.mkdir()
     positions = open_dataset(coarse_data).mesh.positions
-    graph = InteractionGraph(net, None, positions, folded=False)
     interaction = torch.cat([positions[:5].float(), torch.full((5, 3), 0.01)], 1)[None]
-    torch.onnx.export(
-        graph,
-        (interaction,),
-        str(older / "model.onnx"),
-        input_names=["interaction"],
-        output_names=["coefficients"],
-        dynamic_axes={"interaction": {0: "batch", 1: "points"}, "coefficients": {0: "batch"}},
-        opset_version=17,
-        dynamo=False,
-    )
+    older_graph(net, interaction, older)
     assert fold_static_sizes(onnx.load(str(older / "model.onnx"))) > 0  # what export did before
     assert "answers unchanged" in refold_interaction_graph(older)
     assert fold_static_sizes(onnx.load(str(older / "model.onnx"))) == 0

@@ -100,6 +100,12 @@ def main(argv: list[str] | None = None) -> int:
         "fold", help="fold the fixed sizes of reduced networks' graphs exported before export did it (in place)"
     )
     refold.add_argument("--model", type=Path, nargs="+", required=True, help="model directories")
+    served = commands.add_parser(
+        "serve-form",
+        help="rewrite grasp-encoder networks' graphs in their served form, faster for one request "
+        "(in place; answers checked unchanged)",
+    )
+    served.add_argument("--model", type=Path, nargs="+", required=True, help="model directories")
     args = parser.parse_args(argv)
     try:
         if args.command == "forces":
@@ -128,6 +134,12 @@ def main(argv: list[str] | None = None) -> int:
 
             for directory in args.model:
                 print(refold_interaction_graph(directory))
+            return 0
+        if args.command == "serve-form":
+            from .reform import reform
+
+            for directory in args.model:
+                print(reform(directory))
             return 0
         if args.command == "report":
             from .report import write_report

@@ -23,7 +23,8 @@ from safetensors.numpy import save_file
 from .config import TrainConfig
 from .dataset import Dataset, Sample
 from .errors import TrainingInputError
-from .reduced import InteractionGraph
+from .grasp_served import ServedGraspNet, has_served_form
+from .reduced import InteractionGraph, ReducedNet
 from .reduced_train import basis_ceiling, load_reduced
 from .revision import git_commit
 from .static_sizes import RELATIVE_TOLERANCE, fold_file
@@ -129,33 +130,49 @@ def write_interaction_graph(
         assert net.trunk is not None
         with torch.no_grad():
             basis = net.trunk(positions.float()).double()
-    module = InteractionGraph(net, basis if folded else None, positions, folded)
+    trained = InteractionGraph(net, basis if folded else None, positions, folded)
     inputs = [
         torch.cat([positions[s.nodes].float(), torch.from_numpy(s.displacements).float()], dim=-1)[None] for s in check
     ]
-    output = "displacement" if folded else "coefficients"
-    outputs = [output, "forces"] if net.forces is not None else [output]
-    torch.onnx.export(
-        module,
-        (inputs[0],),
-        str(graph),
-        input_names=["interaction"],
-        output_names=outputs,
-        dynamic_axes={
-            "interaction": {0: "batch", 1: "points"},
-            output: {0: "batch"},
-            "forces": {0: "batch", 1: "points"},
-        },
-        opset_version=OPSET,
-        do_constant_folding=net.trunk is None,
-        dynamo=False,
+    outputs = interaction_outputs(trained)
+    trace_interaction_graph(
+        InteractionGraph(net, basis if folded else None, positions, folded, served_form(net)), inputs[0], graph
     )
-    fold_file(graph)
-    checked(module, graph, inputs, "interaction", outputs, log)
+    checked(trained, graph, inputs, "interaction", outputs, log)
     if basis is not None and not folded:
         values = basis.float().numpy().astype(np.float16 if config.basis_precision == "f16" else np.float32)
         save_file({"basis": values}, str(directory / BASIS_FILE), metadata={"mesh_hash": dataset.mesh.content_hash})
     return ["interaction"]
+
+
+def served_form(net: ReducedNet) -> torch.nn.Module | None:
+    """The form of `net`'s encoders that answers one request faster (grasp_served.py), if it has one."""
+    return ServedGraspNet(net).eval() if has_served_form(net) else None
+
+
+def interaction_outputs(module: InteractionGraph) -> list[str]:
+    output = "displacement" if module.folded else "coefficients"
+    return [output, "forces"] if module.net.forces is not None else [output]
+
+
+def trace_interaction_graph(module: InteractionGraph, example: torch.Tensor, graph: Path) -> None:
+    """Writes `module` to `graph` as ONNX, its fixed sizes folded. A served form answers one request at a
+    time: its batch axis is fixed at 1 (nak sends one)."""
+    outputs = interaction_outputs(module)
+    batch = {} if module.served is not None else {0: "batch"}
+    torch.onnx.export(
+        module,
+        (example,),
+        str(graph),
+        input_names=["interaction"],
+        output_names=outputs,
+        dynamic_axes={"interaction": {**batch, 1: "points"}, outputs[0]: batch}
+        | ({"forces": {**batch, 1: "points"}} if "forces" in outputs else {}),
+        opset_version=OPSET,
+        do_constant_folding=module.net.trunk is None,
+        dynamo=False,
+    )
+    fold_file(graph)
 
 
 def ceiling_metrics(config: TrainConfig, run_dir: Path) -> dict[str, float]:

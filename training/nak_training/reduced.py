@@ -382,15 +382,25 @@ class InteractionGraph(nn.Module):
     the basis in the graph (`folded`: Φ itself, or the trunk over the node positions, which ONNX
     Runtime folds into a constant when it loads the graph)."""
 
-    def __init__(self, net: ReducedNet, basis: torch.Tensor | None, positions: torch.Tensor, folded: bool) -> None:
+    def __init__(
+        self,
+        net: ReducedNet,
+        basis: torch.Tensor | None,
+        positions: torch.Tensor,
+        folded: bool,
+        served: nn.Module | None = None,
+    ) -> None:
+        """`served`: the encoders in a form that computes `net.encode` faster for one request
+        (grasp_served.py), used in its place."""
         super().__init__()
         self.net = net
+        self.served = served
         self.folded = folded
         self.register_buffer("positions", positions.float())
         self.register_buffer("basis", basis.float() if basis is not None else torch.zeros(0))
 
     def forward(self, interaction: torch.Tensor) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
-        g, forces = self.net.encode(interaction)
+        g, forces = self.net.encode(interaction) if self.served is None else self.served(interaction)
         out = g
         if self.folded:
             phi = self.net.trunk(self.positions) if self.net.trunk is not None else self.basis
