@@ -708,13 +708,15 @@ def test_a_shipped_graph_is_rewritten_in_its_served_form_from_its_own_weights(
     positions = open_dataset(coarse_data).mesh.positions
     interaction = torch.cat([positions[:7].float(), torch.tensor([[0.01, 0.0, 0.0]] * 4 + [[0.0, 0.0, -0.01]] * 3)], 1)
     shipped = older_graph(net, interaction[None], tmp_path / "shipped")
-    shutil.copy(reduced / "pod-grasps" / "config.toml", shipped / "config.toml")
+    for name in ("config.toml", "manifest.toml"):
+        shutil.copy(reduced / "pod-grasps" / name, shipped / name)
     before = len(onnx.load(str(shipped / "model.onnx")).graph.node)
 
     said = reform(shipped)
     assert "served form" in said and "answers as before" in said, said
     rewritten = onnx.load(str(shipped / "model.onnx"))
     assert batch_is_fixed(rewritten) and len(rewritten.graph.node) < before
+    assert tomllib.loads((shipped / "manifest.toml").read_text())["provenance"]["served_form_at"]
     with torch.no_grad():
         expected = net.encoder(interaction[None]).numpy()
     session = onnxruntime.InferenceSession(str(shipped / "model.onnx"))

@@ -1,7 +1,8 @@
 """Rewrite a shipped grasp-encoder model's graph in its served form (grasp_served.py) without the run it
 was trained in (run directories are not committed): the network is read back from the graph's own
 weights, checked to answer as the graph does, traced again in the served form, checked again, and only
-then written in place. The manifest, basis and metrics stay; the answers do not change.
+then written in place, the manifest's `[provenance] served_form_at` naming the commit that wrote it. The
+basis and metrics stay; the answers do not change.
 """
 
 from __future__ import annotations
@@ -11,14 +12,23 @@ from pathlib import Path
 
 import numpy as np
 import onnx
+import tomli_w
 import torch
 from onnx import numpy_helper
 
 from .config import load_config
 from .errors import TrainingInputError
-from .export import compare_with_onnxruntime, interaction_outputs, served_form, trace_interaction_graph
+from .evaluate import read_manifest
+from .export import (
+    MANIFEST_HEADER,
+    compare_with_onnxruntime,
+    interaction_outputs,
+    served_form,
+    trace_interaction_graph,
+)
 from .reduced import Encoder, InteractionGraph, ReducedNet
 from .reduced_train import reduced_net
+from .revision import git_commit
 from .static_sizes import RELATIVE_TOLERANCE, read_graph
 
 # Requests the graphs are compared on: one to three grasps of one to twelve points, and sets of lone points.
@@ -61,7 +71,10 @@ def reform(directory: Path) -> str:
                 graph_path, f"in the served form it answers {difference:.2e} (relative) differently: left as is"
             )
         before, after = len(old.graph.node), len(read_graph(rewritten).graph.node)
+        manifest = read_manifest(directory)
+        manifest.setdefault("provenance", {})["served_form_at"] = git_commit()
         rewritten.replace(graph_path)
+    (directory / "manifest.toml").write_text(MANIFEST_HEADER + tomli_w.dumps(manifest))
     return (
         f"{directory}: served form, {before} → {after} operators, answers as before "
         f"({difference:.1e} relative on {len(requests)} requests)"
