@@ -22,7 +22,7 @@ from typing import cast
 import torch
 from torch import nn
 
-from .reduced import GraspEncoder, ReducedNet, same_grasp
+from .reduced import ForceHead, GraspEncoder, ReducedNet, same_grasp
 
 # The statistics every member must share to be served as one (an ensemble's are set together).
 SHARED_STATISTICS = ("x_mean", "x_std", "u_scale", "r_scale")
@@ -90,9 +90,9 @@ class ServedGraspEncoders(nn.Module):
         self.register_buffer("triples", torch.eye(modes).repeat_interleave(3, dim=0))
         self.members = nn.ModuleList(ServedMember(m) for m in members)
 
-    def forward(self, interaction: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Each member's g [E, M] unscaled (g / g_scale), the point features [K, 10] and each member's
-        summary [E, 2W], as `GraspEncoder.encode` gives them per member."""
+    def forward(self, interaction: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, list[torch.Tensor]]:
+        """Each member's g [E, M] unscaled (g / g_scale), the point features [K, 10], each point's grasp
+        size [K, 1] and each member's summary [1, 2W], as `GraspEncoder.encode` gives them per member."""
         x = interaction[0, :, :3]
         f = (interaction[0] - self.shift) / self.scale
         alike = same_grasp(f[None])[0]
@@ -124,7 +124,32 @@ class ServedGraspEncoders(nn.Module):
             b = member.matrices_rest(first)  # [K, 3M]
             gs.append((b * shares).sum(0, keepdim=True) @ self.triples + head.sum(0, keepdim=True))
             summaries.append(summary)
-        return torch.cat(gs), features, torch.cat(summaries)
+        return torch.cat(gs), features, size, summaries
+
+
+class ServedForceHead(nn.Module):
+    """A force head (`reduced.ForceHead`) over one request's points as 2-D tensors, its first layer split
+    into the points' part and the set's: [K, 10] points, [K, 1] grasp sizes, [1, S] set → [K, 3]."""
+
+    f_scale: torch.Tensor
+    tile: torch.Tensor
+    row_sums: torch.Tensor
+
+    def __init__(self, head: ForceHead) -> None:
+        super().__init__()
+        features = GraspEncoder.POINT_FEATURES
+        self.points = Part(head.first, slice(0, features), bias=False)
+        self.set = Part(head.first, slice(features, None))
+        self.rest = head.rest
+        self.register_buffer("f_scale", head.f_scale.clone())
+        # û three times ([3, 9]), and the sum of each row of A ([9, 3]), as ForceHead takes A û.
+        self.register_buffer("tile", torch.eye(3).repeat(1, 3))
+        self.register_buffer("row_sums", head.row_sums.clone())
+
+    def forward(self, points: torch.Tensor, seen: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
+        out = self.rest(self.points(points) + self.set(seen))  # [K, 12]: A row-major, then c
+        a_u = (out[:, :9] * (points[:, 3:6] @ self.tile)) @ self.row_sums
+        return (a_u + out[:, 9:]) * (self.f_scale / size)
 
 
 class ServedGraspNet(nn.Module):
@@ -134,20 +159,20 @@ class ServedGraspNet(nn.Module):
     def __init__(self, net: ReducedNet) -> None:
         super().__init__()
         self.encoders = ServedGraspEncoders(served_members(net))
-        self.heads = nn.ModuleList(net.force_heads)
+        self.heads = nn.ModuleList(ServedForceHead(head) for head in net.force_heads)
         self.reads_field = net.force_reads_field
 
     def forward(self, interaction: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-        g, features, summary = self.encoders(interaction)
+        g, features, size, summaries = self.encoders(interaction)
         field = (g * self.encoders.g_scale).mean(0, keepdim=True)
         if len(self.heads) == 0:
             return field, None
-        sizes = features[None, :, -1:].exp()
-        forces = []
-        for i, head in enumerate(self.heads):
-            seen = torch.cat([summary[i], g[i]]) if self.reads_field else summary[i]
-            forces.append(head(features[None], seen[None], sizes))
-        return field, torch.stack(forces).mean(0)
+        forces = [
+            head(features, torch.cat([summary, g[i : i + 1]], dim=-1) if self.reads_field else summary, size)
+            for i, (head, summary) in enumerate(zip(self.heads, summaries, strict=True))
+        ]
+        # One head's forces as they are: a mean of one costs ONNX Runtime three operators a request.
+        return field, (forces[0] if len(forces) == 1 else torch.stack(forces).mean(0))[None]
 
 
 def served_members(net: ReducedNet) -> list[GraspEncoder]:
