@@ -10,6 +10,7 @@ python -m nak_training forces --data DATA --model DIR   (grasp forces against th
 python -m nak_training misses --data DATA --model DIR   (a network's error against how deep the grasps push)
 python -m nak_training paired --data DATA --model A B   (two models' DCMs on the same samples, paired)
 python -m nak_training fold --model DIR...    (fold the fixed sizes of graphs exported before export did)
+python -m nak_training serve-form --model DIR...    (grasp-encoder graphs rewritten in their served form)
 """
 
 from __future__ import annotations
