@@ -23,8 +23,8 @@ from safetensors.numpy import save_file
 from .config import TrainConfig
 from .dataset import Dataset, Sample
 from .errors import TrainingInputError
-from .grasp_served import ServedGraspNet, has_served_form
-from .reduced import InteractionGraph, ReducedNet
+from .grasp_served import served_form
+from .reduced import InteractionGraph
 from .reduced_train import basis_ceiling, load_reduced
 from .revision import git_commit
 from .static_sizes import RELATIVE_TOLERANCE, fold_file
@@ -143,11 +143,6 @@ def write_interaction_graph(
         values = basis.float().numpy().astype(np.float16 if config.basis_precision == "f16" else np.float32)
         save_file({"basis": values}, str(directory / BASIS_FILE), metadata={"mesh_hash": dataset.mesh.content_hash})
     return ["interaction"]
-
-
-def served_form(net: ReducedNet) -> torch.nn.Module | None:
-    """The form of `net`'s encoders that answers one request faster (grasp_served.py), if it has one."""
-    return ServedGraspNet(net).eval() if has_served_form(net) else None
 
 
 def interaction_outputs(module: InteractionGraph) -> list[str]:

@@ -176,12 +176,11 @@ class ServedGraspNet(nn.Module):
 
 
 def served_members(net: ReducedNet) -> list[GraspEncoder]:
-    members = net.members
-    if not all(isinstance(m, GraspEncoder) for m in members):
+    if not all(isinstance(m, GraspEncoder) for m in net.members):
         raise ValueError("only grasp encoders have a served form")
-    return [m for m in members if isinstance(m, GraspEncoder)]
+    return cast(list[GraspEncoder], net.members)
 
 
-def has_served_form(net: ReducedNet) -> bool:
-    """Whether `net`'s encoders are grasp encoders (those `ServedGraspNet` computes)."""
-    return all(isinstance(m, GraspEncoder) for m in net.members)
+def served_form(net: ReducedNet) -> ServedGraspNet | None:
+    """`net` in the form that answers one request faster, if it has one (grasp encoders do)."""
+    return ServedGraspNet(net).eval() if all(isinstance(m, GraspEncoder) for m in net.members) else None

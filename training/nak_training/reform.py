@@ -23,9 +23,9 @@ from .export import (
     MANIFEST_HEADER,
     compare_with_onnxruntime,
     interaction_outputs,
-    served_form,
     trace_interaction_graph,
 )
+from .grasp_served import served_form
 from .reduced import Encoder, InteractionGraph, ReducedNet
 from .reduced_train import reduced_net
 from .revision import git_commit
