@@ -6,7 +6,9 @@ mod common;
 
 use std::sync::Arc;
 
-use common::models::{coarse, copy_model, engine_with_models, load_error, ort, predict, test_models, two_graspers};
+use common::models::{
+    coarse, copy_model, engine_with_models, held_by_two_graspers, load_error, ort, predict, test_models, two_graspers,
+};
 use common::server::TestServer;
 use nak::engine::DeformationModel;
 use nak::engine::{Engine, Grasp, Limits, Request, Selection};
@@ -55,7 +57,14 @@ fn residual_models_serve_prior_plus_network_and_direct_models_do_not() {
         .map(|(a, b)| (a - b).abs())
         .fold(0.0, f32::max);
     assert!(diff > 1e-5 && diff < 0.02, "{diff}");
-    let largest = direct.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+    // Held nodes answer the grasp's centimetres whatever the model (the next test).
+    let held = held_by_two_graspers(engine.mesh());
+    let largest = direct
+        .chunks_exact(3)
+        .enumerate()
+        .filter(|(node, _)| !held.contains(&(*node as u32)))
+        .flat_map(|(_, row)| row)
+        .fold(0.0f32, |m, v| m.max(v.abs()));
     assert!(
         largest < 0.02,
         "direct output should be the network's small field, got {largest}"
@@ -76,6 +85,48 @@ fn selections_are_rows_of_the_full_field_for_networks_too() {
                     (a - b).abs() <= 1e-6 * b.abs().max(1e-3),
                     "{model} node {n}: {a} vs {b}"
                 );
+            }
+        }
+    }
+}
+
+/// A grasper moves the nodes it holds by exactly the grasp's displacement, whatever the model: every
+/// test network (full-field, residual, reduced) and the Kelvinlet answer it at the held nodes, on every
+/// selection (the random test networks miss it by centimetres on their own).
+#[test]
+fn held_nodes_answer_their_prescribed_displacement_whatever_the_model() {
+    let engine = engine_with_models(coarse());
+    let mesh = engine.mesh().clone();
+    let held: Vec<(u32, [f32; 3])> = two_graspers(&mesh)
+        .into_iter()
+        .flat_map(|g| g.nodes.into_iter().map(move |n| (n, g.displacement.map(|v| v as f32))))
+        .collect();
+    let prescribed = |node: u32| held.iter().find(|&&(n, _)| n == node).map(|&(_, u)| u);
+    let row = |field: &[f32], r: usize| -> [f32; 3] { [field[3 * r], field[3 * r + 1], field[3 * r + 2]] };
+    let listed = vec![held[3].0, 3, held[0].0, held[3].0, 2000];
+    let names: Vec<String> = engine.models().map(|m| m.name.clone()).collect();
+    for model in &names {
+        let full = predict(&engine, model, Selection::All);
+        let surface = predict(&engine, model, Selection::Surface);
+        let rows = predict(&engine, model, Selection::List(listed.clone()));
+        for &(node, u) in &held {
+            assert_eq!(row(&full, node as usize), u, "{model}, every node: held node {node}");
+            let on_surface = mesh.surface_nodes.iter().position(|&s| s == node).unwrap();
+            assert_eq!(row(&surface, on_surface), u, "{model}, the surface: held node {node}");
+        }
+        for (r, &node) in listed.iter().enumerate() {
+            match prescribed(node) {
+                Some(u) => assert_eq!(row(&rows, r), u, "{model}, listed held node {node} (row {r})"),
+                // Another node is the model's own answer, as in the full field to f32 rounding.
+                None => {
+                    let (got, whole) = (row(&rows, r), row(&full, node as usize));
+                    for k in 0..3 {
+                        assert!(
+                            (got[k] - whole[k]).abs() <= 1e-6 * whole[k].abs().max(1e-3),
+                            "{model}, listed node {node} (row {r}): {got:?} vs {whole:?}"
+                        );
+                    }
+                }
             }
         }
     }
@@ -212,7 +263,9 @@ fn each_model_is_served_with_its_own_prior() {
     };
     let (k3, k5) = (kelvinlet(0.03), kelvinlet(0.05));
     let scale = k5.iter().fold(0.0f32, |m, v| m.max(v.abs()));
-    for i in 0..at_3cm.len() {
+    // Held nodes answer the grasp whatever the prior (held_nodes_answer_their_prescribed_displacement…).
+    let held = held_by_two_graspers(&mesh);
+    for i in (0..at_3cm.len()).filter(|i| !held.contains(&((i / 3) as u32))) {
         let expected = at_5cm[i] - k5[i] + k3[i];
         assert!(
             (at_3cm[i] - expected).abs() <= 1e-5 * scale,

@@ -87,6 +87,12 @@ async fn unary_predict_matches_the_library_prior_bit_for_bit() {
         &NodeCloud::new(m.positions.iter().copied()),
         &mut expected,
     );
+    // The held nodes answer their grasp's displacement exactly (docs/design.md §7).
+    for (&n, u) in points.nodes.iter().zip(&points.displacements) {
+        for k in 0..3 {
+            expected[3 * n as usize + k] = u[k] as f32;
+        }
+    }
     let expected_bytes: Vec<u8> = expected.iter().flat_map(|v| v.to_le_bytes()).collect();
     assert_eq!(response.displacements.as_ref(), expected_bytes.as_slice());
     server.stop().await;

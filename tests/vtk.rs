@@ -7,7 +7,7 @@ mod common;
 use std::path::{Path, PathBuf};
 
 use common::models::two_graspers;
-use nak::engine::{Engine, Request};
+use nak::engine::{Engine, Grasp, Request};
 use nak::mesh::{self, MeshError, MeshSource, TetMesh, vtk};
 
 fn phantom_dir() -> PathBuf {
@@ -40,9 +40,18 @@ fn the_phantom_round_trips_through_vtu_and_legacy_vtk_unchanged() {
 fn a_prediction_written_for_paraview_is_the_deformed_mesh_with_its_field() {
     let original = mesh::load(&MeshSource::File(phantom_dir().join("liver-coarse.msh"))).unwrap();
     let engine = Engine::new(std::sync::Arc::new(original.clone()), Default::default());
+    // Half the shared test grasps: at their full 3–3.5 cm the Kelvinlet, whose held nodes nak answers
+    // exactly, inverts one element beside a grasp, which nak's reader would refuse to read back.
+    let grasps = two_graspers(&original)
+        .into_iter()
+        .map(|g| Grasp {
+            displacement: g.displacement.map(|u| u / 2.0),
+            ..g
+        })
+        .collect();
     let prediction = engine
         .predict(&Request {
-            grasps: two_graspers(&original),
+            grasps,
             ..Request::default()
         })
         .unwrap();

@@ -9,7 +9,7 @@ use anyhow::{Context, bail};
 use nak::data::dataset;
 use nak::data::dcm::{self, SampleError, Summary};
 use nak::data::force_error::{self, ForceSummary, GraspForceError};
-use nak::engine::{Engine, Forces, Request, VOLUMETRIC_LAW_KEY};
+use nak::engine::{Engine, Forces, HELD_NODES, Request, VOLUMETRIC_LAW_KEY};
 use rayon::prelude::*;
 
 #[derive(clap::Args)]
@@ -23,7 +23,8 @@ pub struct EvalArgs {
     /// Which samples: train, val, test or all.
     #[arg(long, default_value = "test")]
     split: String,
-    /// Write the results as JSON here: per subset, and each scored sample's errors.
+    /// Write the results as JSON here: per subset, and each scored sample's errors (and `held_nodes`:
+    /// how the served field answers the nodes a grasp holds, docs/design.md §7).
     #[arg(long)]
     output: Option<PathBuf>,
     /// Requests of the split (spread evenly over it) timed one at a time after scoring (0: no timing).
@@ -314,7 +315,7 @@ pub fn run(args: &EvalArgs, engine: &Engine) -> anyhow::Result<()> {
             "model": args.model, "data": args.data, "split": args.split, "seed": info.seed, "regime": info.regime,
             "mesh_hash": info.mesh_hash, "subsets": results, "grasp_forces": forces,
             "failed_samples": failed, "samples": per_sample,
-            "latency_us": latency, "threads": rayon::current_num_threads(),
+            "latency_us": latency, "threads": rayon::current_num_threads(), "held_nodes": HELD_NODES,
         });
         std::fs::write(path, serde_json::to_string_pretty(&json)? + "\n")
             .with_context(|| format!("cannot write {}", path.display()))?;

@@ -2,6 +2,7 @@
 //! displacements of the selected nodes. `nak serve` and `nak predict` both go through it.
 
 pub mod grasp;
+mod held;
 pub mod model;
 pub mod regime;
 
@@ -10,6 +11,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 pub use grasp::Grasp;
+pub use held::HELD_NODES;
 pub use model::{
     Answer, DeformationModel, Forces, KelvinletModel, ModelError, ModelInfo, ModelKind, StageTiming, Target,
     VOLUMETRIC_LAW_KEY,
@@ -126,6 +128,7 @@ struct Scratch {
     points: InteractionPoints,
     workspace: Workspace,
     point_forces: Vec<[f64; 3]>,
+    held_by_node: Vec<(u32, usize)>,
 }
 
 /// A model the server was asked to serve but could not load, and why (`GetStatus` lists them).
@@ -384,6 +387,12 @@ impl Engine {
                 &mut stages,
             )
             .map_err(failed)?;
+        held::impose_held_displacements(
+            &scratch.points,
+            target.nodes,
+            &mut displacements,
+            &mut scratch.held_by_node,
+        );
         let grasp_forces = match model.info().forces {
             Forces::Unavailable => None,
             _ => Some(grasp_totals(&scratch.points, &scratch.point_forces).map_err(failed)?),

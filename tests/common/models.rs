@@ -44,6 +44,11 @@ pub fn two_graspers(mesh: &TetMesh) -> Vec<Grasp> {
     ]
 }
 
+/// The nodes `two_graspers` hold, whose rows every model answers with the grasp's displacement.
+pub fn held_by_two_graspers(mesh: &TetMesh) -> Vec<u32> {
+    two_graspers(mesh).into_iter().flat_map(|g| g.nodes).collect()
+}
+
 pub fn predict(engine: &Engine, model: &str, selection: Selection) -> Vec<f32> {
     let request = Request {
         model: model.into(),

@@ -81,6 +81,10 @@ class TrainConfig:
     force_width: int = 64
     # The force head also reads the field's M coefficients (once a set, beside the encoder's summary).
     force_reads_field: bool = False
+    # POD networks: whether the loss scores the network's field at the nodes the grasps hold too. nak
+    # answers those with their prescribed displacement whatever the network gives (docs/design.md §7),
+    # so false trains on the served field's error alone and spends none of the basis there.
+    held_nodes_in_loss: bool = True
     # POD networks: an ensemble of this many encoders, each trained on its own batches, served as the
     # mean of their coefficients in one graph (1: one encoder).
     members: int = 1
@@ -193,6 +197,8 @@ def parse_config(values: dict[str, Any], origin: str) -> TrainConfig:
         raise TrainingInputError(
             origin, "path_states_from needs a network without forces on no prior or the Kelvinlet's"
         )
+    if not config.held_nodes_in_loss and config.architecture != "pod":
+        raise TrainingInputError(origin, 'held_nodes_in_loss = false needs architecture = "pod"')
     if config.pod_samples < 0:
         raise TrainingInputError(origin, f"pod_samples = {config.pod_samples!r}: must be 0 (all) or more")
     return config

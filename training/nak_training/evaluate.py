@@ -43,7 +43,12 @@ def nak_eval(
 
 def metrics_of(report: dict[str, Any]) -> dict[str, Any]:
     """The flat [metrics] table of a manifest from a `nak eval` report."""
-    metrics: dict[str, Any] = {"split": report["split"], "scored_on_seed": report.get("seed")}
+    # How the served field answered the held nodes (absent from reports before nak prescribed them).
+    metrics: dict[str, Any] = {
+        "split": report["split"],
+        "scored_on_seed": report.get("seed"),
+        "held_nodes": report.get("held_nodes"),
+    }
     for subset, s in report["subsets"].items():
         metrics[f"dcm_{subset}"] = round(s["dcm"], 3)
         if s.get("dcm_standard_error") is not None:

@@ -76,6 +76,29 @@ class GraspForces:
         return error[real]
 
 
+class HeldNodes:
+    """The nodes each sample's grasps hold, which nak answers with their prescribed displacement
+    whatever the network gives (docs/design.md §7): the served field's squared error is the
+    coefficient-space one less what the network's field misses there."""
+
+    def __init__(self, positions: torch.Tensor, split: Split, targets: torch.Tensor, volumes: torch.Tensor) -> None:
+        ids, _, _, mask = pad_points(
+            positions,
+            [torch.from_numpy(s.nodes) for s in split.samples],
+            [torch.from_numpy(s.displacements) for s in split.samples],
+        )
+        self.ids = ids  # [S, K]; padding repeats a held node and weighs nothing
+        self.volumes = (volumes[ids] * mask).float()
+        self.targets = targets[torch.arange(len(split))[:, None], ids].float()  # [S, K, 3]
+
+    def squared_error(
+        self, basis: torch.Tensor, g: torch.Tensor, picks: torch.Tensor | slice = slice(None)
+    ) -> torch.Tensor:
+        """Σ_n V_n |Φ_n g − r_n|² over the held nodes of the samples `picks` [B], for coefficients g [B, M]."""
+        estimate = torch.einsum("bkcm,bm->bkc", basis[self.ids[picks]].to(g.dtype), g)
+        return (((estimate - self.targets[picks]) ** 2).sum(-1) * self.volumes[picks]).sum(-1)
+
+
 def grasp_offset_rms(positions: torch.Tensor, split: Split) -> torch.Tensor:
     """RMS distance of a grasped node from its grasp's centroid over `split` (metres): the unit of the
     grasp encoder's offsets."""
@@ -120,6 +143,8 @@ class ReducedTrainer(Run):
         net.encoder.set_statistics(x_mean=positions.mean(0), x_std=positions.std(0), u_scale=(u**2).mean(0).sqrt())
         if config.encoder == "grasps":
             net.encoder.set_statistics(r_scale=grasp_offset_rms(positions, self.train).reshape(1))
+        self.train_held = HeldNodes(positions, self.train, self.train_targets, self.mesh.nodal_volumes)
+        self.val_held = HeldNodes(positions, self.val, self.val_targets, self.mesh.nodal_volumes)
         self.basis: torch.Tensor | None = None
         if net.trunk is None:
             self.basis = self._pod_basis()
@@ -196,8 +221,7 @@ class ReducedTrainer(Run):
         picks = torch.randint(len(self.train), (c.batch,), generator=self.generator)
         g, forces = self.model.encode(self.train_points[picks], self.train_mask[picks])
         if self.basis is not None:
-            p = self.train_projection
-            loss = self._coefficient_error(g, p["g"][picks], p["missed"][picks], self.train_norm[picks]).mean()
+            loss = self._train_error(g, picks).mean()
         else:
             query = torch.randperm(self.mesh.node_count, generator=self.generator)[: c.query_nodes]
             target = self.train_targets[picks[:, None], query[None, :]]
@@ -211,12 +235,11 @@ class ReducedTrainer(Run):
         """Each member (and its force head) on its own batch, towards the POD coefficients (the config
         allows no other)."""
         c = self.config
-        p = self.train_projection
         losses = []
         for member in range(len(ensemble.encoders)):
             picks = torch.randint(len(self.train), (c.batch,), generator=self.generator)
             g, forces = self.model.encode_member(member, self.train_points[picks], self.train_mask[picks])
-            loss = self._coefficient_error(g, p["g"][picks], p["missed"][picks], self.train_norm[picks]).mean()
+            loss = self._train_error(g, picks).mean()
             losses.append(loss + self._force_loss(forces, picks))
         return self._descend(torch.stack(losses).mean())
 
@@ -226,10 +249,24 @@ class ReducedTrainer(Run):
             return 0.0
         return self.config.force_weight * self.train_forces.relative_errors(forces, picks).mean().float()
 
+    def _train_error(self, g: torch.Tensor, picks: torch.Tensor) -> torch.Tensor:
+        """The loss's per-sample error of the train samples `picks`: the served field's, or with
+        `held_nodes_in_loss` the network's own field's, held nodes included."""
+        assert self.basis is not None
+        p = self.train_projection
+        held = None if self.config.held_nodes_in_loss else self.train_held.squared_error(self.basis, g, picks)
+        return self._coefficient_error(g, p["g"][picks], p["missed"][picks], self.train_norm[picks], held)
+
     @staticmethod
-    def _coefficient_error(g: torch.Tensor, target: torch.Tensor, missed: Any, norm: torch.Tensor) -> torch.Tensor:
-        """Per sample ‖Φ g − r‖_V / ‖u‖_V for an L2(Ω)-orthonormal Φ."""
-        return (((g - target) ** 2).sum(1) + missed.float()).sqrt() / norm.sqrt()
+    def _coefficient_error(
+        g: torch.Tensor, target: torch.Tensor, missed: Any, norm: torch.Tensor, held: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """Per sample ‖Φ g − r‖_V / ‖u‖_V for an L2(Ω)-orthonormal Φ; less the squared error `held` at
+        the held nodes, which nak answers exactly (the served field's error)."""
+        squared = ((g - target) ** 2).sum(1) + missed.float()
+        if held is not None:
+            squared = (squared - held).clamp_min(1e-12)
+        return squared.sqrt() / norm.sqrt()
 
     def _field_error(
         self, g: torch.Tensor, query: torch.Tensor, target: torch.Tensor, norm: torch.Tensor
@@ -265,7 +302,8 @@ class ReducedTrainer(Run):
 
     @torch.no_grad()
     def validate(self) -> float:
-        """Volume-weighted DCM of the served field on the val samples: exact, over every node."""
+        """Volume-weighted DCM of the served field (held nodes answered exactly) on the val samples:
+        exact, over every node."""
         self.model.eval()
         g, forces = self.model.encode(self.val_points, self.val_mask)
         if forces is not None and self.val_forces is not None:
@@ -276,11 +314,14 @@ class ReducedTrainer(Run):
             )
         if self.basis is not None:
             p = self.val_projection
-            errors = self._coefficient_error(g, p["g"], p["missed"], self.val_norm)
+            held = self.val_held.squared_error(self.basis, g)
+            errors = self._coefficient_error(g, p["g"], p["missed"], self.val_norm, held)
         else:
             assert self.model.trunk is not None
             phi = self.model.trunk(self.positions)
             estimate = torch.einsum("nkm,bm->bnk", phi, g)
+            samples, ids = torch.arange(len(self.val))[:, None], self.val_held.ids
+            estimate[samples, ids] = self.val_targets[samples, ids].to(estimate.dtype)
             errors = (squared_norms(estimate - self.val_targets, self.mesh.nodal_volumes) / self.val_norm).sqrt()
         self.model.train()
         return float(100.0 * (1.0 - errors.mean()))

@@ -287,6 +287,17 @@ def save(
     plt.close(fig)
 
 
+def scored_before_held_nodes(e: Entry) -> bool:
+    """Whether the model was scored before nak answered held nodes with their prescribed displacement
+    (docs/design.md §7): its manifest's scores are of the field as the model alone gave it."""
+    return "held_nodes" not in e.metrics
+
+
+def marked(e: Entry) -> str:
+    """The model's name, with the footnote mark of a score from before held nodes were prescribed."""
+    return f"`{e.name}`" + ("\\*" if scored_before_held_nodes(e) else "")
+
+
 def curve_point(name: str) -> bool:
     """Whether a model is a learning curve's point (`<config>-nN`), trained on part of the data."""
     return name.rpartition("-n")[2].isdigit()
@@ -318,8 +329,17 @@ def learning_curve(entries: list[Entry], path: Path) -> list[str]:
     lines = ["| configuration | training samples → DCM on its scored samples (volume form) |", "|---|---|"]
     for base, points in curves.items():
         xs, ys = [e.train_samples for e in points], [e.metrics["dcm_combined"] for e in points]
-        ax.plot(xs, ys, marker="o", label=base)
-        named = [f" (`{e.name}`)" if e.name != base and not e.name.startswith(f"{base}-n") else "" for e in points]
+        (line,) = ax.plot(xs, ys, marker="o", label=base)
+        before = [(x, y) for x, y, e in zip(xs, ys, points, strict=True) if scored_before_held_nodes(e)]
+        if before:
+            # Hollow: scored before held nodes were prescribed, so lower than the rest would show.
+            ax.plot(*zip(*before, strict=True), "o", color="white", markeredgecolor=line.get_color(), zorder=3)
+        named = [
+            f" ({marked(e)})"
+            if e.name != base and not e.name.startswith(f"{base}-n")
+            else ("\\*" if scored_before_held_nodes(e) else "")
+            for e in points
+        ]
         lines.append(
             f"| `{base}` | " + ", ".join(f"{x:,} → {y:.2f}{n}" for x, y, n in zip(xs, ys, named, strict=True)) + " |"
         )
@@ -398,7 +418,7 @@ def write_report(
     for e in sorted(entries, key=lambda e: (e.regime, e.name)):
         m = e.metrics
         rows.append(
-            f"| `{e.name}` | {e.regime} | {METHOD_LABEL[e.method]} | {e.prior if e.method == 'res' else '–'} | "
+            f"| {marked(e)} | {e.regime} | {METHOD_LABEL[e.method]} | {e.prior if e.method == 'res' else '–'} | "
             f"{e.trained_on} | {e.epsilon * 100:g} | "
             f"{m.get('dcm_single', float('nan')):.2f} | {m.get('dcm_multi', float('nan')):.2f} | "
             f"{m['dcm_combined']:.2f} | {m['dcm_code_combined']:.2f} | {m.get('network_ms_p50', float('nan')):.3f} | "
@@ -413,6 +433,9 @@ def write_report(
         "`[metrics]` come from `nak eval` on the test split (nonlinear ones: on the held-out set below); the",
         "baselines are scored by `nak eval` when the page is made. Times: the serving engine's time per",
         "request (`nak eval`: about 200 requests spread over the split, one at a time) on this machine's 2 vCPUs.",
+        "Every score is of the field as nak serves it, whose held nodes answer their grasp's displacement",
+        "exactly (docs/design.md §7); \\*: scored before nak did so (2026-12-07), on a model that ships no graph",
+        "to score again (hollow in the learning curve).",
         f"Linear dataset: `{data}` (`nak datagen --regime linear --preset paper --seed 0`).",
     ]
     if nonlinear_data:

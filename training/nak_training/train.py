@@ -503,7 +503,8 @@ class Trainer(Run):
 
     @torch.no_grad()
     def validate(self, batch: int = 8) -> float:
-        """Volume-weighted DCM of the served field (prior added for +Res) on the val samples."""
+        """Volume-weighted DCM of the served field (prior added for +Res, held nodes answered exactly)
+        on the val samples."""
         self.model.eval()
         estimates = torch.empty_like(self.val.fields)
         for start in range(0, len(self.val), batch):
@@ -512,6 +513,9 @@ class Trainer(Run):
             estimates[start : start + len(chunk)] = self.model(features)
         if self.val_prior is not None:
             estimates += self.val_prior
+        # nak answers each held node with its prescribed displacement (docs/design.md §7).
+        for i, s in enumerate(self.val.samples):
+            estimates[i, torch.from_numpy(s.nodes)] = torch.from_numpy(s.displacements).to(estimates.dtype)
         self.model.train()
         return dcm(self.val.fields, estimates, self.mesh.nodal_volumes)
 
