@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -48,22 +49,24 @@ def test_the_nonlinear_table_sets_nak_beside_the_papers_table_3() -> None:
 
 
 def test_the_learning_curve_orders_a_configurations_sizes_and_skips_other_models(tmp_path: Path) -> None:
-    def entry(name: str, samples: int, dcm: float, recipe: str = "res") -> Entry:
-        return Entry(
-            name, "pod", "res", "all", 0.01, {"dcm_combined": dcm}, "nonlinear", train_samples=samples, recipe=recipe
-        )
+    def entry(name: str, samples: int, dcm: float, recipe: str = "res", scored_as_served: bool = True) -> Entry:
+        metrics: dict[str, Any] = {"dcm_combined": dcm}
+        if scored_as_served:
+            metrics["held_nodes"] = "prescribed"
+        return Entry(name, "pod", "res", "all", 0.01, metrics, "nonlinear", train_samples=samples, recipe=recipe)
 
     entries = [
         entry("pod-res-nl-n800", 800, 70.0),
         entry("pod-res-nl", 1577, 75.5),
-        entry("pod-res-nl-n200", 200, 60.25),
+        # Scored before held nodes answered the request: marked.
+        entry("pod-res-nl-n200", 200, 60.25, scored_as_served=False),
         # Trained alike on more data under another name: the curve's next point, named.
         entry("pod-res-more-nl", 3000, 78.0),
     ]
     entries.append(entry("pod-base-nl", 1577, 71.0, recipe="base"))
     lines = learning_curve(entries, tmp_path / "curve.png")
     assert lines[2:] == [
-        "| `pod-res-nl` | 200 → 60.25, 800 → 70.00, 1,577 → 75.50, 3,000 → 78.00 (`pod-res-more-nl`) |"
+        "| `pod-res-nl` | 200 → 60.25\\*, 800 → 70.00, 1,577 → 75.50, 3,000 → 78.00 (`pod-res-more-nl`) |"
     ]
     assert (tmp_path / "curve.png").is_file()
     assert learning_curve([entry("pod-base-nl", 1577, 71.0)], tmp_path / "none.png") == []
