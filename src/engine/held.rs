@@ -31,8 +31,9 @@ pub fn impose_held_displacements(
             by_node.extend(points.nodes.iter().enumerate().map(|(point, &node)| (node, point)));
             by_node.sort_unstable();
             for (row, node) in rows.iter().enumerate() {
-                if let Ok(found) = by_node.binary_search_by_key(node, |&(held, _)| held) {
-                    write(field, row, &points.displacements[by_node[found].1]);
+                let found = by_node.binary_search_by_key(node, |&(held, _)| held).ok();
+                if let Some(displacement) = found.and_then(|i| points.displacements.get(by_node[i].1)) {
+                    write(field, row, displacement);
                 }
             }
         }
