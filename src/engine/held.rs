@@ -41,6 +41,11 @@ pub fn impose_held_displacements(
 }
 
 fn write(field: &mut [f32], row: usize, displacement: &[f64; 3]) {
+    debug_assert!(
+        3 * row + 3 <= field.len(),
+        "row {row} outside a field of {} values",
+        field.len()
+    );
     if let Some(values) = field.get_mut(3 * row..3 * row + 3) {
         for (value, &u) in values.iter_mut().zip(displacement) {
             *value = u as f32;

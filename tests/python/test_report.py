@@ -75,13 +75,16 @@ def test_the_learning_curve_orders_a_configurations_sizes_and_skips_other_models
 def test_a_recipe_is_how_a_model_trains_not_on_what_or_how_many_threads(tmp_path: Path) -> None:
     def config(name: str, body: str) -> Path:
         path = tmp_path / f"{name}.toml"
-        path.write_text(f'name = "{name}"\nlr = 2e-3\n{body}')
+        path.write_text(f'name = "{name}"\narchitecture = "pod"\nmethod = "base"\nlr = 2e-3\n{body}')
         return path
 
     plain = recipe(config("pod-base-nl", ""))
     assert recipe(config("pod-base-more-nl", 'holdout = "val"\nthreads = 1\ntrain_samples = 0\n')) == plain
     assert recipe(config("pod-base-nl-n1600", "train_samples = 1600\n")) == plain
     assert recipe(config("pod-base-lr-nl", "weight_decay = 1e-3\n")) != plain
+    # A key written at its default (as exports write every key) is the same recipe as one left out.
+    assert recipe(config("pod-base-full-nl", "held_nodes_in_loss = true\n")) == plain
+    assert recipe(config("pod-base-served-nl", "held_nodes_in_loss = false\n")) != plain
     assert recipe(tmp_path / "missing.toml") == ""
 
 

@@ -32,7 +32,7 @@ from nak_training.kelvinlet import Prior, pad_points
 from nak_training.models import Grasped, MeshGNN, build
 from nak_training.grasp_served import ServedGraspNet
 from nak_training.reduced import Encoder, Ensemble, GraspEncoder, InteractionGraph, ReducedNet, project, weighted_basis
-from nak_training.reduced_train import HeldNodes, ReducedTrainer, load_reduced
+from nak_training.reduced_train import HeldNodes, ReducedTrainer, interaction_batch, load_reduced
 from nak_training.reform import batch_is_fixed, reform
 from nak_training.served import Nak
 from nak_training.static_sizes import fold_static_sizes, refold_interaction_graph
@@ -227,7 +227,8 @@ def test_the_served_error_in_coefficient_space_leaves_out_the_held_nodes_as_nak_
     basis, _ = weighted_basis(train.fields, volumes, 6)
     p = project(val.fields, basis, volumes)
     g = p["g"] + 0.3 * torch.randn(p["g"].shape, generator=torch.Generator().manual_seed(0))
-    held = HeldNodes(dataset.mesh.positions, val, val.fields, volumes)
+    _, mask, ids = interaction_batch(dataset.mesh.positions, val)
+    held = HeldNodes(ids, mask, val.fields, volumes)
     norm = (val.fields.double() ** 2).sum(-1) @ volumes.double()
     errors = ReducedTrainer._coefficient_error(g, p["g"], p["missed"], norm.float(), held.squared_error(basis, g))
     field = torch.einsum("nkm,bm->bnk", basis, g.double())

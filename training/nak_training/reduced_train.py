@@ -28,14 +28,15 @@ from .train import Run
 CEILING_MODES = [8, 16, 32, 48, 64, 96, 128, 192, 256]
 
 
-def interaction_batch(mesh_positions: torch.Tensor, split: Split) -> tuple[torch.Tensor, torch.Tensor]:
-    """Every sample's interaction points as served, padded: [S, K, 6] f32 and the mask [S, K]."""
-    _, points, displacements, mask = pad_points(
+def interaction_batch(mesh_positions: torch.Tensor, split: Split) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Every sample's interaction points as served, padded: [S, K, 6] f32, the mask [S, K] and the held
+    node ids [S, K] (padding repeats a held node)."""
+    ids, points, displacements, mask = pad_points(
         mesh_positions,
         [torch.from_numpy(s.nodes) for s in split.samples],
         [torch.from_numpy(s.displacements) for s in split.samples],
     )
-    return torch.cat([points.float(), displacements.float()], dim=-1), mask
+    return torch.cat([points.float(), displacements.float()], dim=-1), mask, ids
 
 
 class GraspForces:
@@ -79,17 +80,15 @@ class GraspForces:
 class HeldNodes:
     """The nodes each sample's grasps hold, which nak answers with their prescribed displacement
     whatever the network gives (docs/design.md §7): the served field's squared error is the
-    coefficient-space one less what the network's field misses there."""
+    coefficient-space one less what the network's field misses there. That takes the served error at a
+    held node to be zero, which holds because the ground truth has the prescribed displacement there
+    (the finite elements' boundary condition)."""
 
-    def __init__(self, positions: torch.Tensor, split: Split, targets: torch.Tensor, volumes: torch.Tensor) -> None:
-        ids, _, _, mask = pad_points(
-            positions,
-            [torch.from_numpy(s.nodes) for s in split.samples],
-            [torch.from_numpy(s.displacements) for s in split.samples],
-        )
-        self.ids = ids  # [S, K]; padding repeats a held node and weighs nothing
+    def __init__(self, ids: torch.Tensor, mask: torch.Tensor, targets: torch.Tensor, volumes: torch.Tensor) -> None:
+        """`ids`, `mask` [S, K]: each sample's held nodes as `interaction_batch` pads them."""
+        self.ids = ids  # padding repeats a held node and weighs nothing
         self.volumes = (volumes[ids] * mask).float()
-        self.targets = targets[torch.arange(len(split))[:, None], ids].float()  # [S, K, 3]
+        self.targets = targets[torch.arange(len(ids))[:, None], ids].float()  # [S, K, 3]
 
     def squared_error(
         self, basis: torch.Tensor, g: torch.Tensor, picks: torch.Tensor | slice = slice(None)
@@ -130,8 +129,8 @@ class ReducedTrainer(Run):
         self.train_norm = squared_norms(self.train.fields, self.mesh.nodal_volumes).float()
         self.val_norm = squared_norms(self.val.fields, self.mesh.nodal_volumes).float()
         self.mean_norm = self.train_norm.mean()
-        self.train_points, self.train_mask = interaction_batch(self.mesh.positions, self.train)
-        self.val_points, self.val_mask = interaction_batch(self.mesh.positions, self.val)
+        self.train_points, self.train_mask, train_ids = interaction_batch(self.mesh.positions, self.train)
+        self.val_points, self.val_mask, val_ids = interaction_batch(self.mesh.positions, self.val)
         net = reduced_net(config)
         self.train_forces = self._grasp_forces(self.train, "train", self.train_points.shape[1])
         self.val_forces = self._grasp_forces(self.val, "val", self.val_points.shape[1])
@@ -143,8 +142,11 @@ class ReducedTrainer(Run):
         net.encoder.set_statistics(x_mean=positions.mean(0), x_std=positions.std(0), u_scale=(u**2).mean(0).sqrt())
         if config.encoder == "grasps":
             net.encoder.set_statistics(r_scale=grasp_offset_rms(positions, self.train).reshape(1))
-        self.train_held = HeldNodes(positions, self.train, self.train_targets, self.mesh.nodal_volumes)
-        self.val_held = HeldNodes(positions, self.val, self.val_targets, self.mesh.nodal_volumes)
+        volumes = self.mesh.nodal_volumes
+        self.val_held = HeldNodes(val_ids, self.val_mask, self.val_targets, volumes)
+        self.train_held = (
+            None if config.held_nodes_in_loss else HeldNodes(train_ids, self.train_mask, self.train_targets, volumes)
+        )
         self.basis: torch.Tensor | None = None
         if net.trunk is None:
             self.basis = self._pod_basis()
@@ -254,7 +256,7 @@ class ReducedTrainer(Run):
         `held_nodes_in_loss` the network's own field's, held nodes included."""
         assert self.basis is not None
         p = self.train_projection
-        held = None if self.config.held_nodes_in_loss else self.train_held.squared_error(self.basis, g, picks)
+        held = None if self.train_held is None else self.train_held.squared_error(self.basis, g, picks)
         return self._coefficient_error(g, p["g"][picks], p["missed"][picks], self.train_norm[picks], held)
 
     @staticmethod
@@ -265,7 +267,7 @@ class ReducedTrainer(Run):
         the held nodes, which nak answers exactly (the served field's error)."""
         squared = ((g - target) ** 2).sum(1) + missed.float()
         if held is not None:
-            squared = (squared - held).clamp_min(1e-12)
+            squared = (squared - held).clamp_min(1e-12 * norm)
         return squared.sqrt() / norm.sqrt()
 
     def _field_error(

@@ -22,6 +22,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+from .config import parse_config  # noqa: E402
 from .dataset import open_dataset  # noqa: E402
 from .evaluate import metrics_of, nak_eval  # noqa: E402
 from .export import CEILING_PREFIX  # noqa: E402
@@ -108,7 +109,8 @@ def recipe(config_path: Path) -> str:
     or on how many threads: two models of one recipe are points of one learning curve."""
     if not config_path.is_file():
         return ""
-    config = tomllib.loads(config_path.read_text())
+    # Through the parser, so that a key added since (with its default) does not split one recipe in two.
+    config = parse_config(tomllib.loads(config_path.read_text()), str(config_path)).to_dict()
     for key in ("name", "train_samples", "holdout", "threads"):
         config.pop(key, None)
     return json.dumps(config, sort_keys=True)
