@@ -295,9 +295,13 @@ def scored_before_held_nodes(e: Entry) -> bool:
     return "held_nodes" not in e.metrics
 
 
+def mark(e: Entry) -> str:
+    """The footnote mark of a score from before held nodes were prescribed ("" after)."""
+    return "\\*" if scored_before_held_nodes(e) else ""
+
+
 def marked(e: Entry) -> str:
-    """The model's name, with the footnote mark of a score from before held nodes were prescribed."""
-    return f"`{e.name}`" + ("\\*" if scored_before_held_nodes(e) else "")
+    return f"`{e.name}`{mark(e)}"
 
 
 def curve_point(name: str) -> bool:
@@ -337,10 +341,7 @@ def learning_curve(entries: list[Entry], path: Path) -> list[str]:
             # Hollow: scored before held nodes were prescribed, so lower than the rest would show.
             ax.plot(*zip(*before, strict=True), "o", color="white", markeredgecolor=line.get_color(), zorder=3)
         named = [
-            f" ({marked(e)})"
-            if e.name != base and not e.name.startswith(f"{base}-n")
-            else ("\\*" if scored_before_held_nodes(e) else "")
-            for e in points
+            f" ({marked(e)})" if e.name != base and not e.name.startswith(f"{base}-n") else mark(e) for e in points
         ]
         lines.append(
             f"| `{base}` | " + ", ".join(f"{x:,} → {y:.2f}{n}" for x, y, n in zip(xs, ys, named, strict=True)) + " |"
