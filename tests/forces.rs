@@ -251,6 +251,37 @@ async fn a_network_with_a_forces_output_serves_each_grasps_sum_direct_or_on_its_
     server.stop().await;
 }
 
+/// tests/models/make_models.py's GEOMETRY_GAIN: reduced-geometry gives each point GEOMETRY_GAIN · V_k n_k
+/// from the normal and nodal volume nak feeds it.
+const GEOMETRY_GAIN: f64 = 1e6;
+
+#[tokio::test]
+async fn a_graph_that_reads_surface_geometry_is_fed_each_points_normal_and_nodal_volume() {
+    let mesh = coarse();
+    let server = TestServer::with_engine(engine_with_models(mesh.clone()), 1 << 20).await;
+    let client = server.client().await;
+    let grasps = two_graspers(&mesh);
+    let expected: Vec<[f64; 3]> = grasps
+        .iter()
+        .map(|g| {
+            std::array::from_fn(|k| {
+                g.nodes
+                    .iter()
+                    .map(|&n| GEOMETRY_GAIN * mesh.nodal_volumes[n as usize] * mesh.normals[n as usize][k])
+                    .sum()
+            })
+        })
+        .collect();
+    let served = answer(&client, "reduced-geometry", &grasps).await;
+    let served: Vec<[f64; 3]> = served
+        .grasp_forces
+        .iter()
+        .map(|f| [f.x as f64, f.y as f64, f.z as f64])
+        .collect();
+    assert_close(&served, &expected, "geometry");
+    server.stop().await;
+}
+
 #[test]
 fn a_forces_output_of_the_wrong_shape_or_without_its_manifest_section_is_refused_at_load() {
     let faulty = test_models().join("faulty");

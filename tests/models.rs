@@ -34,6 +34,7 @@ fn every_test_model_loads_and_is_listed_with_its_manifest() {
             "pointnet-residual",
             "reduced-folded",
             "reduced-forces",
+            "reduced-geometry",
             "reduced-residual",
             "reduced-residual-f16"
         ]

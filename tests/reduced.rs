@@ -104,7 +104,7 @@ fn refuses_a_wrong_interaction_input_or_basis() {
     let faulty = test_models().join("faulty");
     let err = load_error(&faulty.join("interaction-wrong-width/interaction-wrong-width"));
     assert!(
-        err.contains("\"interaction\"") && err.contains("[batch, K, 6]") && err.contains("5]"),
+        err.contains("\"interaction\" has 5 values a point") && err.contains("6 (position, displacement) or 10"),
         "{err}"
     );
     let err = load_error(&faulty.join("basis-wrong-size/basis-wrong-size"));

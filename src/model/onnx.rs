@@ -44,8 +44,8 @@ pub struct ModelFiles<'a> {
 
 /// Per-request buffers, pooled.
 struct Buffers {
-    /// `features` [N, C] row-major, positions filled once (features form); `interaction` [K, 6]
-    /// (interaction form).
+    /// `features` [N, C] row-major, positions filled once (features form); `interaction` [K, 6] or
+    /// [K, 10] (interaction form).
     input: Vec<f32>,
     /// Nodes whose displacement/active channels the last request set, to clear them in O(K).
     dirty: Vec<u32>,
@@ -81,6 +81,9 @@ pub struct OnnxModel {
     session: Mutex<Session>,
     /// The features form's input with positions already written, to copy when the pool is empty.
     template: Vec<f32>,
+    /// Each node's outward unit normal and lumped volume, for interaction graphs that read them
+    /// (empty otherwise).
+    geometry: Vec<[f32; 4]>,
     pool: Mutex<Vec<Buffers>>,
 }
 
@@ -250,6 +253,11 @@ impl OnnxModel {
             all_nodes: NodeCloud::new(mesh.positions.iter().copied()),
             session: Mutex::new(session),
             template,
+            geometry: if signature.geometry {
+                node_geometry(mesh)
+            } else {
+                Vec::new()
+            },
             pool: Mutex::new(Vec::new()),
         };
         model
@@ -269,7 +277,7 @@ impl OnnxModel {
                 let mut points = InteractionPoints::default();
                 let node = mesh.surface_nodes.first().copied().unwrap_or(0);
                 points.push(node, mesh.positions[node as usize], [0.0, 0.0, 0.001]);
-                fill_interaction(&points, &mut buffers.input);
+                fill_interaction(&points, &self.geometry, &mut buffers.input);
                 self.run_network(&buffers.input, 1, |_, _| Ok(()))
             }
         };
@@ -340,7 +348,7 @@ impl OnnxModel {
         let name = self.signature.input.name();
         let shape = match self.signature.input {
             Input::Features => [1usize, self.node_count, self.channels],
-            Input::Interaction => [1usize, k, signature::INTERACTION_WIDTH],
+            Input::Interaction => [1usize, k, self.signature.interaction_width()],
         };
         let tensor = TensorRef::from_array_view((shape, input))
             .map_err(|e| ModelError::Runtime(format!("cannot wrap the {name} input: {e}")))?;
@@ -436,12 +444,26 @@ struct Encoded<'a> {
     forces: &'a mut Vec<f32>,
 }
 
-/// Writes each interaction point's rest position and prescribed displacement, [K, 6] row-major.
-fn fill_interaction(points: &InteractionPoints, input: &mut Vec<f32>) {
+/// Writes each interaction point's rest position and prescribed displacement, [K, 6] row-major, and
+/// with a `geometry` table (one row per node) the point's row of it after them, [K, 10].
+fn fill_interaction(points: &InteractionPoints, geometry: &[[f32; 4]], input: &mut Vec<f32>) {
     input.clear();
-    for (p, u) in points.positions.iter().zip(&points.displacements) {
+    for ((p, u), &node) in points.positions.iter().zip(&points.displacements).zip(&points.nodes) {
         input.extend(p.iter().chain(u).map(|&v| v as f32));
+        if !geometry.is_empty() {
+            // Nodes were checked against the mesh when the request was resolved.
+            input.extend(geometry.get(node as usize).copied().unwrap_or_default());
+        }
     }
+}
+
+/// Each node's outward unit normal (zero inside) and lumped volume, as the graph reads them.
+fn node_geometry(mesh: &TetMesh) -> Vec<[f32; 4]> {
+    mesh.normals
+        .iter()
+        .zip(&mesh.nodal_volumes)
+        .map(|(n, &v)| [n[0] as f32, n[1] as f32, n[2] as f32, v as f32])
+        .collect()
 }
 
 /// Copies (or adds, with `add`) the rows of `target`'s nodes from a whole-mesh field [N, 3] into `out`.
@@ -686,7 +708,7 @@ impl OnnxModel {
         elapsed_us: &mut f32,
     ) -> Result<(), ModelError> {
         let start = Instant::now();
-        fill_interaction(points, input);
+        fill_interaction(points, &self.geometry, input);
         let result = self.run_network(input, points.len(), |values, forces| {
             into.output.clear();
             into.output.extend_from_slice(values);

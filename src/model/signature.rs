@@ -14,6 +14,8 @@ pub const COEFFICIENTS: &str = "coefficients";
 pub const FORCES: &str = "forces";
 /// Per interaction point: rest position (3) and prescribed displacement (3).
 pub const INTERACTION_WIDTH: usize = 6;
+/// The same, then the point's surface geometry: outward unit normal (3) and lumped nodal volume (1, m³).
+pub const INTERACTION_GEOMETRY_WIDTH: usize = 10;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Input {
@@ -47,27 +49,49 @@ pub struct Signature {
     pub output: Output,
     /// Whether the graph also gives `forces` f32 [B, K, 3] (interaction graphs only).
     pub forces: bool,
+    /// Whether the `interaction` input also carries each point's surface geometry ([B, K, 10]).
+    pub geometry: bool,
 }
 
-/// Reads `session`'s signature: one input (`features` [B, N, channels] or `interaction` [B, K, 6]) and
-/// one output (`displacement` [B, N, 3], or `coefficients` [B, M] after `interaction`), f32, with B
-/// either 1 or symbolic; an interaction graph may add `forces` [B, K, 3].
+impl Signature {
+    /// Values per interaction point the graph reads.
+    pub fn interaction_width(&self) -> usize {
+        if self.geometry {
+            INTERACTION_GEOMETRY_WIDTH
+        } else {
+            INTERACTION_WIDTH
+        }
+    }
+}
+
+/// Reads `session`'s signature: one input (`features` [B, N, channels] or `interaction` [B, K, 6], or
+/// [B, K, 10] with each point's surface geometry) and one output (`displacement` [B, N, 3], or
+/// `coefficients` [B, M] after `interaction`), f32, with B either 1 or symbolic; an interaction graph
+/// may add `forces` [B, K, 3].
 pub fn read(session: &Session, channels: usize, n: usize, origin: &str) -> Result<Signature, ModelLoadError> {
     let inputs: Vec<&Outlet> = session.inputs().iter().collect();
     let input = single(&inputs, "input", [FEATURES, INTERACTION], origin)?;
-    let input = match input.name() {
+    let (input, geometry) = match input.name() {
         FEATURES => {
             check_shape(input, "input", &[Some(n), Some(channels)], "[batch, N, C]", origin)?;
-            Input::Features
+            (Input::Features, false)
         }
         _ => {
-            let shape = check_shape(
-                input,
-                "input",
-                &[None, Some(INTERACTION_WIDTH)],
-                "[batch, K, 6]",
-                origin,
-            )?;
+            let shape = check_shape(input, "input", &[None, None], "[batch, K, 6 or 10]", origin)?;
+            let geometry = match usize::try_from(shape[2]) {
+                Ok(INTERACTION_WIDTH) => false,
+                Ok(INTERACTION_GEOMETRY_WIDTH) => true,
+                _ => {
+                    return Err(ModelLoadError::new(
+                        origin,
+                        format!(
+                            "{INTERACTION:?} has {} values a point; the contract gives {INTERACTION_WIDTH} \
+                             (position, displacement) or {INTERACTION_GEOMETRY_WIDTH} (then normal, nodal volume)",
+                            shape[2]
+                        ),
+                    ));
+                }
+            };
             if shape[1] >= 0 {
                 return Err(ModelLoadError::new(
                     origin,
@@ -77,7 +101,7 @@ pub fn read(session: &Session, channels: usize, n: usize, origin: &str) -> Resul
                     ),
                 ));
             }
-            Input::Interaction
+            (Input::Interaction, geometry)
         }
     };
     let (main, forces): (Vec<&Outlet>, Vec<&Outlet>) = session.outputs().iter().partition(|o| o.name() != FORCES);
@@ -122,7 +146,12 @@ pub fn read(session: &Session, channels: usize, n: usize, origin: &str) -> Resul
             ));
         }
     };
-    Ok(Signature { input, output, forces })
+    Ok(Signature {
+        input,
+        output,
+        forces,
+        geometry,
+    })
 }
 
 /// The one input (or output, as `role` says) of a graph, named one of `names`.

@@ -21,6 +21,8 @@ of REDUCED_MODES modes:
 * reduced-folded         the same encoder with the basis folded into the graph: `displacement`
 * reduced-forces         reduced-residual with a second output `forces` [B, K, 3] = FORCE_GAINS ⊙ u_k,
                          a closed form the tests check nak's per-grasp sums against
+* reduced-geometry       input [B, K, 10] (each point's surface normal and nodal volume after its position
+                         and displacement), `forces` = GEOMETRY_GAIN · V_k n_k: what nak fed it, per grasp
 
 (the three give the same field, up to f16 rounding), and tests/models/faulty/<case>/ models that must
 be refused, fail, or run long.
@@ -50,8 +52,9 @@ PRIOR_CHANNEL = "prior"
 # Per-channel normalization baked into the graph: (value - shift) / scale.
 SHIFT = {"position": [0.0, 0.0, 0.0], "displacement": [0.0] * 3, "active": [0.0], "prior": [0.0] * 3}
 SCALE = {"position": [0.1] * 3, "displacement": [0.05] * 3, "active": [1.0], "prior": [0.05] * 3}
-# Interaction points: rest position (m) and prescribed displacement (m), scaled to order one.
-INTERACTION_SCALE = [0.1] * 3 + [0.05] * 3
+# Interaction points: rest position (m), prescribed displacement (m) and, in the wider form, the surface
+# normal (unit) and the nodal volume (m³), scaled to order one.
+INTERACTION_SCALE = [0.1] * 3 + [0.05] * 3 + [1.0] * 3 + [1e-8]
 REDUCED_MODES = 12
 # Loop steps of the `slow` faulty model per request: seconds on any machine.
 SLOW_ITERATIONS = 3_000_000
@@ -59,6 +62,8 @@ SLOW_ITERATIONS = 3_000_000
 OUTPUT_SCALE = 0.004
 # reduced-forces: the force on each point, N per metre of its prescribed displacement, per axis.
 FORCE_GAINS = [100.0, 200.0, 300.0]
+# reduced-geometry: the force on each point, N per m³ of its nodal volume, along its normal.
+GEOMETRY_GAIN = 1e6
 
 
 @dataclass(frozen=True)
@@ -131,7 +136,7 @@ def pointnet(g: GraphBuilder, channels: list[str]) -> str:
 
 
 def set_encoder(g: GraphBuilder, modes: int, width: int = 6) -> str:
-    """`interaction` [B, K, 6] → coefficients [B, modes]: per-point MLP, max over the K points, head."""
+    """`interaction` [B, K, width] → coefficients [B, modes]: per-point MLP, max over the K points, head."""
     x = g.op("Div", ["interaction", g.constant(np.array(INTERACTION_SCALE[:width], np.float32))])
     h = g.op("Relu", [g.linear(x, width, WIDTH)])
     h = g.op("Relu", [g.linear(h, WIDTH, WIDTH)])
@@ -199,7 +204,16 @@ def write_reduced(
 
 
 def force_output(g: GraphBuilder, form: str) -> Any:
-    """`forces` = FORCE_GAINS ⊙ u_k per point (or the wrong shapes `two-axes`, `per-set`); its value info."""
+    """`forces` = FORCE_GAINS ⊙ u_k per point (or the wrong shapes `two-axes`, `per-set`; or, for `geometry`,
+    GEOMETRY_GAIN · V_k n_k from the wider input); its value info."""
+    if form == "geometry":
+        starts, ends, axis = (g.constant(np.array(v, np.int64)) for v in ([6], [9], [2]))
+        normal = g.op("Slice", ["interaction", starts, ends, axis])
+        starts, ends = (g.constant(np.array(v, np.int64)) for v in ([9], [10]))
+        volume = g.op("Slice", ["interaction", starts, ends, axis])
+        scaled = g.op("Mul", [normal, g.op("Mul", [volume, g.constant(np.array([GEOMETRY_GAIN], np.float32))])])
+        g.nodes.append(helper.make_node("Identity", [scaled], ["forces"]))
+        return helper.make_tensor_value_info("forces", TensorProto.FLOAT, ["batch", "points", 3])
     axes = 2 if form == "two-axes" else 3
     starts, ends, axis = (g.constant(np.array(v, np.int64)) for v in ([3], [3 + axes], [2]))
     u = g.op("Slice", ["interaction", starts, ends, axis])
@@ -422,6 +436,7 @@ def main() -> None:
         ("reduced-residual-f16", {"basis_dtype": np.float16}),
         ("reduced-folded", {"folded": True}),
         ("reduced-forces", {"forces": "points"}),
+        ("reduced-geometry", {"forces": "geometry", "width": 10}),
     ]
     for name, extra in reduced:
         # One encoder and one basis (seed 21) in three forms.

@@ -141,6 +141,8 @@ def test_bad_input_is_refused_naming_the_file_or_key(coarse_data: Path, tmp_path
         parse_config(tiny_config(architecture="pod", forces=True, force_mode="residual"), "x.toml")
     with pytest.raises(TrainingInputError, match=r"force_reads_field = true needs forces = true"):
         parse_config(tiny_config(architecture="pod", force_reads_field=True), "x.toml")
+    with pytest.raises(TrainingInputError, match=r'interaction_geometry = true needs .* encoder = "grasps"'):
+        parse_config(tiny_config(architecture="pod", interaction_geometry=True), "x.toml")
     with pytest.raises(TrainingInputError, match=r'held_nodes_in_loss = false needs architecture = "pod"'):
         parse_config(tiny_config(architecture="deeponet", held_nodes_in_loss=False), "x.toml")
     bad = tmp_path / "bad.toml"
@@ -679,28 +681,38 @@ def older_graph(net: ReducedNet, interaction: torch.Tensor, directory: Path) -> 
     return directory
 
 
-def request_of(grasps: list[tuple[int, list[float]]], seed: int) -> torch.Tensor:
-    """interaction [1, K, 6]: for each (point count, displacement), that many points near the phantom."""
+def request_of(grasps: list[tuple[int, list[float]]], seed: int, geometry: bool = False) -> torch.Tensor:
+    """interaction [1, K, 6]: for each (point count, displacement), that many points near the phantom;
+    with `geometry`, [1, K, 10]: each with a unit normal and a nodal volume of about 1e-8 m³ too."""
     rng = torch.Generator().manual_seed(seed)
-    rows = [
-        torch.cat([torch.tensor([0.05, 0.02, 0.1]) + 0.03 * torch.randn(3, generator=rng), torch.tensor(u)])
-        for count, u in grasps
-        for _ in range(count)
-    ]
-    return torch.stack(rows)[None]
+
+    def point(u: list[float]) -> torch.Tensor:
+        row = [torch.tensor([0.05, 0.02, 0.1]) + 0.03 * torch.randn(3, generator=rng), torch.tensor(u)]
+        if geometry:
+            normal = torch.randn(3, generator=rng)
+            row += [normal / normal.norm(), 1e-8 * (1.0 + torch.rand(1, generator=rng))]
+        return torch.cat(row)
+
+    return torch.stack([point(u) for count, u in grasps for _ in range(count)])[None]
 
 
-@pytest.mark.parametrize("members,force_width,reads_field", [(3, None, False), (1, 16, False), (2, 16, True)])
+@pytest.mark.parametrize(
+    "members,force_width,reads_field,geometry",
+    [(3, None, False, False), (1, 16, False, False), (2, 16, True, False), (2, 16, False, True)],
+)
 def test_the_served_form_of_grasp_encoders_answers_as_they_do(
-    members: int, force_width: int | None, reads_field: bool
+    members: int, force_width: int | None, reads_field: bool, geometry: bool
 ) -> None:
     """Per grasp and sharing what members share (grasp_served.py), for one grasp or several, grasps of
-    one point, points in any order, the field's coefficients and the forces are the network's."""
+    one point, points in any order, the field's coefficients and the forces are the network's, with the
+    points' surface geometry as an input or without."""
     torch.manual_seed(members)
-    net = ReducedNet("pod", 8, 32, "grasps", force_width, members, reads_field)
+    net = ReducedNet("pod", 8, 32, "grasps", force_width, members, reads_field, geometry)
     statistics = dict(x_mean=torch.tensor([0.05, 0.02, 0.1]), x_std=torch.tensor([0.05, 0.04, 0.06]))
     for member in net.members:
         member.set_statistics(**statistics, u_scale=torch.full((3,), 0.01), g_scale=torch.rand(8) + 0.5)
+        if geometry:
+            member.set_statistics(v_scale=torch.tensor([1.5e-8]))
     net.eval()
     served = ServedGraspNet(net).eval()
     requests = [
@@ -710,7 +722,7 @@ def test_the_served_form_of_grasp_encoders_answers_as_they_do(
         [(3, [0.01, 0.0, 0.0]), (1, [0.0, 0.01, 0.0]), (5, [0.0, 0.0, 0.01])],
     ]
     for seed, grasps in enumerate(requests):
-        interaction = request_of(grasps, seed)
+        interaction = request_of(grasps, seed, geometry)
         shuffled = interaction[:, torch.randperm(interaction.shape[1])]
         with torch.no_grad():
             expected, expected_forces = net.encode(interaction)
@@ -846,22 +858,24 @@ def test_a_network_on_a_green_prior_is_trained_and_served_on_it(
 
 
 @pytest.mark.parametrize(
-    ("prior", "encoder", "ensemble"),
+    ("prior", "encoder", "ensemble", "geometry"),
     [
-        ("kelvinlet", "linear", False),
-        ("green-linear", "linear", False),
-        ("kelvinlet", "grasps", False),
-        ("kelvinlet", "grasps", True),
+        ("kelvinlet", "linear", False, False),
+        ("green-linear", "linear", False, False),
+        ("kelvinlet", "grasps", False, False),
+        ("kelvinlet", "grasps", True, False),
+        ("kelvinlet", "grasps", False, True),
     ],
 )
 def test_a_force_head_is_trained_exported_and_served_as_the_sum_of_its_point_forces(
-    nak_binary: Path, coarse_data: Path, tmp_path: Path, prior: str, encoder: str, ensemble: bool
+    nak_binary: Path, coarse_data: Path, tmp_path: Path, prior: str, encoder: str, ensemble: bool, geometry: bool
 ) -> None:
     """forces = true: the graph gains `forces` [B, K, 3], checked against onnxruntime at export; the
     manifest says how nak serves them (direct on the Kelvinlet; on green-linear, residual: added to its
     exact forces); nak serves each grasp's sum; training lowers the error nak eval measures. The grasp
     encoder gives the head its grasp's size and shape too. An ensemble (whose heads here also read the
-    field's coefficients) serves the mean of its members' heads."""
+    field's coefficients) serves the mean of its members' heads. With `interaction_geometry` the graph
+    reads [B, K, 10], and nak feeds it the normals and nodal volumes training saw (the dataset's mesh)."""
     dataset = open_dataset(coarse_data)
     nak = Nak(nak_binary, COARSE)
     models = tmp_path / "models"
@@ -871,6 +885,7 @@ def test_a_force_head_is_trained_exported_and_served_as_the_sum_of_its_point_for
         values.update(steps=steps, batch=8, lr=lr)
         if ensemble:
             values.update(members=3, force_reads_field=True)
+        values.update(interaction_geometry=geometry)
         mode = "direct" if prior == "kelvinlet" else "residual"
         config = parse_config(
             tiny_config(**values, forces=True, force_mode=mode, force_weight=1.0, val_every=100), "tiny"
@@ -897,8 +912,13 @@ def test_a_force_head_is_trained_exported_and_served_as_the_sum_of_its_point_for
 
     # Served forces: per grasp, the sum over its points of the graph's output (plus the prior's own).
     sample = next(s for s in dataset.load("test").samples if s.forces is not None and len(s.forces) == 2)
-    interaction = np.concatenate([dataset.mesh.positions[sample.nodes].numpy(), sample.displacements], axis=1)
+    mesh, nodes = dataset.mesh, sample.nodes
+    columns = [mesh.positions[nodes].numpy(), sample.displacements]
+    if geometry:
+        columns += [mesh.normals[nodes].numpy(), mesh.nodal_volumes[nodes].numpy()[:, None]]
+    interaction = np.concatenate(columns, axis=1)
     session = onnxruntime.InferenceSession(str(models / "trained" / "model.onnx"))
+    assert session.get_inputs()[0].shape[-1] == (10 if geometry else 6)
     assert [o.name for o in session.get_outputs()] == ["coefficients", "forces"]
     (point_forces,) = session.run(["forces"], {"interaction": interaction[None].astype("f4")})
     learned = np.stack([point_forces[0][sample.grasp_of_point == g].sum(0) for g in range(2)])

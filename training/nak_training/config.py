@@ -81,6 +81,11 @@ class TrainConfig:
     force_width: int = 64
     # The force head also reads the field's M coefficients (once a set, beside the encoder's summary).
     force_reads_field: bool = False
+    # Grasp encoders: each interaction point's surface geometry (outward unit normal, lumped nodal volume)
+    # joins its position and displacement in the input, which nak then fills from the mesh
+    # (docs/design.md §7): whether a grasp pushes into the surface or pulls it out, and how much of the
+    # organ each held node stands for.
+    interaction_geometry: bool = False
     # POD networks: whether the loss scores the network's field at the nodes the grasps hold too. nak
     # answers those with their prescribed displacement whatever the network gives (docs/design.md §7),
     # so false trains on the served field's error alone and spends none of the basis there.
@@ -171,6 +176,10 @@ def parse_config(values: dict[str, Any], origin: str) -> TrainConfig:
         raise TrainingInputError(
             origin,
             'force_mode = "residual" adds to the prior\'s forces: it needs method = "res" on green-linear or green-tangent',
+        )
+    if config.interaction_geometry and not (config.reduced and config.encoder == "grasps"):
+        raise TrainingInputError(
+            origin, 'interaction_geometry = true needs a reduced architecture with encoder = "grasps"'
         )
     if config.force_reads_field and not config.forces:
         raise TrainingInputError(origin, "force_reads_field = true needs forces = true: it shapes the force head")

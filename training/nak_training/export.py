@@ -25,7 +25,7 @@ from .dataset import Dataset, Sample
 from .errors import TrainingInputError
 from .grasp_served import served_form
 from .reduced import InteractionGraph
-from .reduced_train import basis_ceiling, load_reduced
+from .reduced_train import basis_ceiling, interaction_input, load_reduced
 from .revision import git_commit
 from .static_sizes import RELATIVE_TOLERANCE, fold_file
 from .train import load_trained, served_features
@@ -120,7 +120,7 @@ def write_features_graph(
 def write_interaction_graph(
     config: TrainConfig, dataset: Dataset, run_dir: Path, check: list[Sample], graph: Path, directory: Path, log: Any
 ) -> list[str]:
-    """A reduced network: `interaction` [B, K, 6] → `coefficients` [B, M] with `basis.safetensors`
+    """A reduced network: `interaction` [B, K, 6] (10 with surface geometry) → `coefficients` [B, M] with `basis.safetensors`
     beside the graph, or → `displacement` [B, N, 3] with the basis folded into it (form = "graph";
     a DeepONet's trunk then stays a subgraph over the node positions that ONNX Runtime folds at load)."""
     net, basis = load_reduced(run_dir, config)
@@ -132,7 +132,14 @@ def write_interaction_graph(
             basis = net.trunk(positions.float()).double()
     trained = InteractionGraph(net, basis if folded else None, positions, folded)
     inputs = [
-        torch.cat([positions[s.nodes].float(), torch.from_numpy(s.displacements).float()], dim=-1)[None] for s in check
+        interaction_input(
+            dataset.mesh,
+            torch.from_numpy(s.nodes),
+            positions[s.nodes],
+            torch.from_numpy(s.displacements),
+            config.interaction_geometry,
+        )[None]
+        for s in check
     ]
     outputs = interaction_outputs(trained)
     trace_interaction_graph(

@@ -49,7 +49,7 @@ class ServedMember(nn.Module):
 
     def __init__(self, member: GraspEncoder) -> None:
         super().__init__()
-        features = GraspEncoder.POINT_FEATURES
+        features = member.point_features
         context = 2 * cast(nn.Linear, member.embed[0]).out_features + 3
         self.embed = member.embed
         matrices, head = cast(nn.Linear, member.matrices[0]), cast(nn.Linear, member.head[0])
@@ -63,7 +63,8 @@ class ServedMember(nn.Module):
 
 
 class ServedGraspEncoders(nn.Module):
-    """interaction [1, K, 6] → the members' g, the point features and each member's summary."""
+    """interaction [1, K, 6] (or [1, K, 10] with surface geometry) → the members' g, the point features and
+    each member's summary."""
 
     shift: torch.Tensor
     scale: torch.Tensor
@@ -79,9 +80,14 @@ class ServedGraspEncoders(nn.Module):
         for name in SHARED_STATISTICS:
             if any(not torch.equal(m.get_buffer(name), first.get_buffer(name)) for m in members):
                 raise ValueError(f"the members' {name} differ: they cannot be served as one")
+        if any(
+            m.geometry != first.geometry or (m.geometry and not torch.equal(m.v_scale, first.v_scale)) for m in members
+        ):
+            raise ValueError("the members read different inputs: they cannot be served as one")
         modes = first.modes
-        self.register_buffer("shift", torch.cat([first.x_mean, torch.zeros(3)]).clone())
-        self.register_buffer("scale", torch.cat([first.x_std, first.u_scale]).clone())
+        shift, scale = first.input_shift_scale()
+        self.register_buffer("shift", shift.detach().clone())
+        self.register_buffer("scale", scale.detach().clone())
         self.register_buffer("x_std", first.x_std.clone())
         self.register_buffer("r_scale", first.r_scale.clone())
         self.register_buffer("g_scale", torch.stack([m.g_scale for m in members]).clone())  # [E, M]
@@ -91,7 +97,7 @@ class ServedGraspEncoders(nn.Module):
         self.members = nn.ModuleList(ServedMember(m) for m in members)
 
     def forward(self, interaction: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, list[torch.Tensor]]:
-        """Each member's g [E, M] unscaled (g / g_scale), the point features [K, 10], each point's grasp
+        """Each member's g [E, M] unscaled (g / g_scale), the point features [K, F], each point's grasp
         size [K, 1] and each member's summary [1, 2W], as `GraspEncoder.encode` gives them per member."""
         x = interaction[0, :, :3]
         f = (interaction[0] - self.shift) / self.scale
@@ -108,7 +114,7 @@ class ServedGraspEncoders(nn.Module):
         others_count = others.sum(-1, keepdim=True)
         count = others_count.clamp_min(1.0)
         apart = ((others @ x) / count - centroid[rows]) / self.x_std * (others_count > 0).to(x.dtype)
-        shares = (f[:, 3:] @ self.tile) / size  # [K, 3M]: û_k per mode over its grasp's size
+        shares = (f[:, 3:6] @ self.tile) / size  # [K, 3M]: û_k per mode over its grasp's size
         gs, summaries = [], []
         for member in self.members:
             assert isinstance(member, ServedMember)
@@ -129,15 +135,15 @@ class ServedGraspEncoders(nn.Module):
 
 class ServedForceHead(nn.Module):
     """A force head (`reduced.ForceHead`) over one request's points as 2-D tensors, its first layer split
-    into the points' part and the set's: [K, 10] points, [K, 1] grasp sizes, [1, S] set → [K, 3]."""
+    into the points' part and the set's: [K, F] points, [K, 1] grasp sizes, [1, S] set → [K, 3]."""
 
     f_scale: torch.Tensor
     tile: torch.Tensor
     row_sums: torch.Tensor
 
-    def __init__(self, head: ForceHead) -> None:
+    def __init__(self, head: ForceHead, features: int) -> None:
+        """`features`: how many point features the head's encoder gives (the first layer's first columns)."""
         super().__init__()
-        features = GraspEncoder.POINT_FEATURES
         self.points = Part(head.first, slice(0, features), bias=False)
         self.set = Part(head.first, slice(features, None))
         self.rest = head.rest
@@ -153,13 +159,14 @@ class ServedForceHead(nn.Module):
 
 
 class ServedGraspNet(nn.Module):
-    """A grasp-encoder network as served: interaction [1, K, 6] → g [1, M] and, with force heads, the
+    """A grasp-encoder network as served: interaction [1, K, 6 or 10] → g [1, M] and, with force heads, the
     force on each point [1, K, 3] (the members' means, as `ReducedNet.encode` gives them)."""
 
     def __init__(self, net: ReducedNet) -> None:
         super().__init__()
         self.encoders = ServedGraspEncoders(served_members(net))
-        self.heads = nn.ModuleList(ServedForceHead(head) for head in net.force_heads)
+        features = served_members(net)[0].point_features
+        self.heads = nn.ModuleList(ServedForceHead(head, features) for head in net.force_heads)
         self.reads_field = net.force_reads_field
 
     def forward(self, interaction: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:

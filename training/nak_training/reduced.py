@@ -49,34 +49,55 @@ def mlp(widths: list[int]) -> nn.Sequential:
 
 
 ENCODERS = ("linear", "pooled", "grasps")
+# An interaction point's position and prescribed displacement; with geometry, its surface's outward unit
+# normal and its lumped nodal volume after them (docs/design.md §7: nak fills what the graph's width asks).
+INTERACTION_WIDTH = 6
+GEOMETRY_WIDTH = 4
 
 
 class Encoder(nn.Module):
-    """interaction [B, K, 6] (rest position, prescribed displacement; metres) → g [B, M], with the
-    train split's statistics as buffers (part of the exported graph)."""
+    """interaction [B, K, 6] (rest position, prescribed displacement; metres), or [B, K, 10] with each
+    point's surface geometry after them (outward unit normal, lumped nodal volume in m³; `geometry`) →
+    g [B, M], with the train split's statistics as buffers (part of the exported graph)."""
 
     x_mean: torch.Tensor
     x_std: torch.Tensor
     u_scale: torch.Tensor
     g_scale: torch.Tensor
+    v_scale: torch.Tensor
 
     # What each point gives a force head: its normalized position and displacement first.
     POINT_FEATURES = 6
 
-    def __init__(self, modes: int) -> None:
+    def __init__(self, modes: int, geometry: bool = False) -> None:
         super().__init__()
         self.modes = modes
+        self.geometry = geometry
+        self.point_features = self.POINT_FEATURES + (GEOMETRY_WIDTH if geometry else 0)
         for name, shape in [("x_mean", 3), ("x_std", 3), ("u_scale", 3), ("g_scale", modes)]:
             self.register_buffer(name, torch.ones(shape) if name != "x_mean" else torch.zeros(shape))
+        if geometry:
+            # The train split's mean held-node volume: nodal volumes are about 1e-8 m³.
+            self.register_buffer("v_scale", torch.ones(1))
 
     def set_statistics(self, **stats: torch.Tensor) -> None:
         for name, value in stats.items():
             self.get_buffer(name).copy_(value.to(torch.float32))
 
-    def normalized(self, interaction: torch.Tensor) -> torch.Tensor:
-        """One subtract and one divide by 6-vectors (constants once the graph is loaded)."""
+    def input_shift_scale(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """What the input is normalized by, channel by channel: positions by the mesh's statistics,
+        displacements by their RMS, normals as they are (unit), volumes by their mean."""
         shift = torch.cat([self.x_mean, torch.zeros_like(self.u_scale)])
-        return (interaction - shift) / torch.cat([self.x_std, self.u_scale])
+        scale = torch.cat([self.x_std, self.u_scale])
+        if self.geometry:
+            shift = torch.cat([shift, torch.zeros(GEOMETRY_WIDTH)])
+            scale = torch.cat([scale, torch.ones(3), self.v_scale])
+        return shift, scale
+
+    def normalized(self, interaction: torch.Tensor) -> torch.Tensor:
+        """One subtract and one divide by constant vectors (folded once the graph is loaded)."""
+        shift, scale = self.input_shift_scale()
+        return (interaction - shift) / scale
 
     def forward(self, interaction: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
         return self.encode(interaction, mask)[0]
@@ -168,15 +189,16 @@ class GraspEncoder(Encoder):
 
     r_scale: torch.Tensor
 
-    # Position, displacement, offset from the grasp's centroid, log of the grasp's count.
+    # Position, displacement (with geometry: normal, volume), offset from the grasp's centroid, log of
+    # the grasp's count (last).
     POINT_FEATURES = 10
 
-    def __init__(self, modes: int, width: int) -> None:
-        super().__init__(modes)
+    def __init__(self, modes: int, width: int, geometry: bool = False) -> None:
+        super().__init__(modes, geometry)
         self.register_buffer("r_scale", torch.ones(1))
-        self.embed = mlp([self.POINT_FEATURES, width, width, width])
+        self.embed = mlp([self.point_features, width, width, width])
         context = 2 * width + 3  # the own and other grasps' mean embeddings, the others' centroid offset
-        self.matrices = mlp([self.POINT_FEATURES + context + 2 * width, width, width, 3 * modes])
+        self.matrices = mlp([self.point_features + context + 2 * width, width, width, 3 * modes])
         self.head = mlp([context + 2 * width, width, modes])
 
     def encode(
@@ -199,7 +221,7 @@ class GraspEncoder(Encoder):
         b = self.matrices[1:](split_linear(self.matrices[0], [features, context], summary))
         b = b.unflatten(-1, (self.modes, 3))
         head = self.head[1:](split_linear(self.head[0], [context], summary))
-        per_point = (b * f[..., 3:].unsqueeze(-2)).sum(-1) + head  # [B, K, M]
+        per_point = (b * f[..., 3:6].unsqueeze(-2)).sum(-1) + head  # [B, K, M]
         share = 1.0 / size if mask is None else mask.unsqueeze(-1).to(f.dtype) / size
         return (per_point * share).sum(1) * self.g_scale, features, summary
 
@@ -320,15 +342,19 @@ class ReducedNet(nn.Module):
         force_width: int | None = None,
         members: int = 1,
         force_reads_field: bool = False,
+        geometry: bool = False,
     ) -> None:
         """`force_width`: the force head's width (None: no force head); `members`: encoders averaged;
-        `force_reads_field`: the force head also reads the field's coefficients (normalized), once a set."""
+        `force_reads_field`: the force head also reads the field's coefficients (normalized), once a set;
+        `geometry`: the input carries each point's surface normal and nodal volume (grasp encoders)."""
         super().__init__()
 
+        if geometry and encoder != "grasps":
+            raise ValueError(f"surface geometry is an input of grasp encoders only, not of {encoder!r}")
         kinds: dict[str, Callable[[int, int], Encoder]] = {
             "linear": SetEncoder,
             "pooled": PooledEncoder,
-            "grasps": GraspEncoder,
+            "grasps": lambda m, w: GraspEncoder(m, w, geometry),
         }
         encoders = [kinds[encoder](modes, width) for _ in range(members)]
         self.encoder: Encoder = encoders[0] if members == 1 else Ensemble(encoders)
@@ -337,7 +363,7 @@ class ReducedNet(nn.Module):
         read = modes if force_reads_field else 0
         # An ensemble's members each have a head, fed by their own features, and serve the mean force.
         # One encoder keeps its head unlisted, so its weights keep the names shipped models were saved with.
-        heads = [] if force_width is None else [ForceHead(width, force_width, e.POINT_FEATURES, read) for e in encoders]
+        heads = [] if force_width is None else [ForceHead(width, force_width, e.point_features, read) for e in encoders]
         self.forces: nn.Module | None = None if not heads else heads[0] if members == 1 else nn.ModuleList(heads)
 
     @property

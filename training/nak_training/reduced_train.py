@@ -18,7 +18,7 @@ from typing import Any
 import torch
 
 from .config import TrainConfig
-from .dataset import Dataset, Split
+from .dataset import Dataset, Mesh, Split
 from .errors import TrainingInputError
 from .kelvinlet import pad_points
 from .reduced import Ensemble, ReducedNet, ceiling, project, weighted_basis
@@ -28,15 +28,27 @@ from .train import Run
 CEILING_MODES = [8, 16, 32, 48, 64, 96, 128, 192, 256]
 
 
-def interaction_batch(mesh_positions: torch.Tensor, split: Split) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Every sample's interaction points as served, padded: [S, K, 6] f32, the mask [S, K] and the held
-    node ids [S, K] (padding repeats a held node)."""
+def interaction_batch(mesh: Mesh, split: Split, geometry: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Every sample's interaction points as served, padded: [S, K, 6] f32 (with `geometry`, [S, K, 10]),
+    the mask [S, K] and the held node ids [S, K] (padding repeats a held node)."""
     ids, points, displacements, mask = pad_points(
-        mesh_positions,
+        mesh.positions,
         [torch.from_numpy(s.nodes) for s in split.samples],
         [torch.from_numpy(s.displacements) for s in split.samples],
     )
-    return torch.cat([points.float(), displacements.float()], dim=-1), mask, ids
+    return interaction_input(mesh, ids, points, displacements, geometry), mask, ids
+
+
+def interaction_input(
+    mesh: Mesh, ids: torch.Tensor, points: torch.Tensor, displacements: torch.Tensor, geometry: bool
+) -> torch.Tensor:
+    """What nak feeds an interaction graph for held nodes `ids` [..., K]: their rest positions and
+    prescribed displacements, and with `geometry` their surface normals and lumped nodal volumes
+    (docs/design.md §7), f32 [..., K, 6 or 10]."""
+    parts = [points, displacements]
+    if geometry:
+        parts += [mesh.normals[ids], mesh.nodal_volumes[ids].unsqueeze(-1)]
+    return torch.cat([p.float() for p in parts], dim=-1)
 
 
 class GraspForces:
@@ -129,8 +141,9 @@ class ReducedTrainer(Run):
         self.train_norm = squared_norms(self.train.fields, self.mesh.nodal_volumes).float()
         self.val_norm = squared_norms(self.val.fields, self.mesh.nodal_volumes).float()
         self.mean_norm = self.train_norm.mean()
-        self.train_points, self.train_mask, train_ids = interaction_batch(self.mesh.positions, self.train)
-        self.val_points, self.val_mask, val_ids = interaction_batch(self.mesh.positions, self.val)
+        geometry = config.interaction_geometry
+        self.train_points, self.train_mask, train_ids = interaction_batch(self.mesh, self.train, geometry)
+        self.val_points, self.val_mask, val_ids = interaction_batch(self.mesh, self.val, geometry)
         net = reduced_net(config)
         self.train_forces = self._grasp_forces(self.train, "train", self.train_points.shape[1])
         self.val_forces = self._grasp_forces(self.val, "val", self.val_points.shape[1])
@@ -138,10 +151,13 @@ class ReducedTrainer(Run):
             for head in net.force_heads:
                 head.f_scale.copy_(self.train_forces.scale())
         positions = self.mesh.positions
-        u = self.train_points[..., 3:][self.train_mask]
+        u = self.train_points[..., 3:6][self.train_mask]
         net.encoder.set_statistics(x_mean=positions.mean(0), x_std=positions.std(0), u_scale=(u**2).mean(0).sqrt())
         if config.encoder == "grasps":
             net.encoder.set_statistics(r_scale=grasp_offset_rms(positions, self.train).reshape(1))
+        if geometry:
+            held_volumes = self.mesh.nodal_volumes[train_ids][self.train_mask]
+            net.encoder.set_statistics(v_scale=held_volumes.mean().reshape(1))
         volumes = self.mesh.nodal_volumes
         self.val_held = HeldNodes(val_ids, self.val_mask, self.val_targets, volumes)
         self.train_held = (
@@ -339,6 +355,7 @@ def reduced_net(config: TrainConfig) -> ReducedNet:
         config.head_width,
         config.members,
         config.force_reads_field,
+        config.interaction_geometry,
     )
 
 
