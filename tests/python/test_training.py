@@ -141,6 +141,8 @@ def test_bad_input_is_refused_naming_the_file_or_key(coarse_data: Path, tmp_path
         parse_config(tiny_config(architecture="pod", forces=True, force_mode="residual"), "x.toml")
     with pytest.raises(TrainingInputError, match=r"force_reads_field = true needs forces = true"):
         parse_config(tiny_config(architecture="pod", force_reads_field=True), "x.toml")
+    with pytest.raises(TrainingInputError, match=r"force_reads_grasps = true needs forces = true and encoder"):
+        parse_config(tiny_config(architecture="pod", forces=True, force_reads_grasps=True), "x.toml")
     with pytest.raises(TrainingInputError, match=r'interaction_geometry = true needs .* encoder = "grasps"'):
         parse_config(tiny_config(architecture="pod", interaction_geometry=True), "x.toml")
     with pytest.raises(TrainingInputError, match=r'held_nodes_in_loss = false needs architecture = "pod"'):
@@ -697,17 +699,23 @@ def request_of(grasps: list[tuple[int, list[float]]], seed: int, geometry: bool 
 
 
 @pytest.mark.parametrize(
-    "members,force_width,reads_field,geometry",
-    [(3, None, False, False), (1, 16, False, False), (2, 16, True, False), (2, 16, False, True)],
+    "members,force_width,reads_field,geometry,reads_grasps",
+    [
+        (3, None, False, False, False),
+        (1, 16, False, False, False),
+        (2, 16, True, False, False),
+        (2, 16, False, True, False),
+        (2, 16, False, True, True),
+    ],
 )
 def test_the_served_form_of_grasp_encoders_answers_as_they_do(
-    members: int, force_width: int | None, reads_field: bool, geometry: bool
+    members: int, force_width: int | None, reads_field: bool, geometry: bool, reads_grasps: bool
 ) -> None:
     """Per grasp and sharing what members share (grasp_served.py), for one grasp or several, grasps of
     one point, points in any order, the field's coefficients and the forces are the network's, with the
-    points' surface geometry as an input or without."""
+    points' surface geometry as an input or without, and force heads that read the grasps' context."""
     torch.manual_seed(members)
-    net = ReducedNet("pod", 8, 32, "grasps", force_width, members, reads_field, geometry)
+    net = ReducedNet("pod", 8, 32, "grasps", force_width, members, reads_field, geometry, reads_grasps)
     statistics = dict(x_mean=torch.tensor([0.05, 0.02, 0.1]), x_std=torch.tensor([0.05, 0.04, 0.06]))
     for member in net.members:
         member.set_statistics(**statistics, u_scale=torch.full((3,), 0.01), g_scale=torch.rand(8) + 0.5)

@@ -81,6 +81,9 @@ class TrainConfig:
     force_width: int = 64
     # The force head also reads the field's M coefficients (once a set, beside the encoder's summary).
     force_reads_field: bool = False
+    # Grasp encoders: the force head also reads what each point sees of the grasps (its grasp's mean
+    # embedding, the other grasps' and their centroid's offset), once per grasp as served.
+    force_reads_grasps: bool = False
     # Grasp encoders: each interaction point's surface geometry (outward unit normal, lumped nodal volume)
     # joins its position and displacement in the input, which nak then fills from the mesh
     # (docs/design.md §7): whether a grasp pushes into the surface or pulls it out, and how much of the
@@ -181,6 +184,8 @@ def parse_config(values: dict[str, Any], origin: str) -> TrainConfig:
         raise TrainingInputError(
             origin, 'interaction_geometry = true needs a reduced architecture with encoder = "grasps"'
         )
+    if config.force_reads_grasps and not (config.forces and config.encoder == "grasps"):
+        raise TrainingInputError(origin, 'force_reads_grasps = true needs forces = true and encoder = "grasps"')
     if config.force_reads_field and not config.forces:
         raise TrainingInputError(origin, "force_reads_field = true needs forces = true: it shapes the force head")
     if not config.force_weight >= 0:

@@ -96,9 +96,12 @@ class ServedGraspEncoders(nn.Module):
         self.register_buffer("triples", torch.eye(modes).repeat_interleave(3, dim=0))
         self.members = nn.ModuleList(ServedMember(m) for m in members)
 
-    def forward(self, interaction: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, list[torch.Tensor]]:
+    def forward(
+        self, interaction: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, list[torch.Tensor], list[torch.Tensor], torch.Tensor]:
         """Each member's g [E, M] unscaled (g / g_scale), the point features [K, F], each point's grasp
-        size [K, 1] and each member's summary [1, 2W], as `GraspEncoder.encode` gives them per member."""
+        size [K, 1] and each member's summary [1, 2W], as `GraspEncoder.encode` gives them per member;
+        then each member's context per grasp [G, 2W + 3] and which grasp each point is in [K, G]."""
         x = interaction[0, :, :3]
         f = (interaction[0] - self.shift) / self.scale
         alike = same_grasp(f[None])[0]
@@ -115,7 +118,7 @@ class ServedGraspEncoders(nn.Module):
         count = others_count.clamp_min(1.0)
         apart = ((others @ x) / count - centroid[rows]) / self.x_std * (others_count > 0).to(x.dtype)
         shares = (f[:, 3:6] @ self.tile) / size  # [K, 3M]: û_k per mode over its grasp's size
-        gs, summaries = [], []
+        gs, summaries, contexts = [], [], []
         for member in self.members:
             assert isinstance(member, ServedMember)
             e = member.embed(features)  # [K, W]
@@ -130,7 +133,8 @@ class ServedGraspEncoders(nn.Module):
             b = member.matrices_rest(first)  # [K, 3M]
             gs.append((b * shares).sum(0, keepdim=True) @ self.triples + head.sum(0, keepdim=True))
             summaries.append(summary)
-        return torch.cat(gs), features, size, summaries
+            contexts.append(context)
+        return torch.cat(gs), features, size, summaries, contexts, member_of
 
 
 class ServedForceHead(nn.Module):
@@ -141,19 +145,32 @@ class ServedForceHead(nn.Module):
     tile: torch.Tensor
     row_sums: torch.Tensor
 
-    def __init__(self, head: ForceHead, features: int) -> None:
-        """`features`: how many point features the head's encoder gives (the first layer's first columns)."""
+    def __init__(self, head: ForceHead, features: int, context: int = 0) -> None:
+        """`features`: how many point features the head's encoder gives (the first layer's first columns);
+        `context`: how many values of each grasp's context it reads after them (0: none), computed once
+        per grasp."""
         super().__init__()
         self.points = Part(head.first, slice(0, features), bias=False)
-        self.set = Part(head.first, slice(features, None))
+        self.context = Part(head.first, slice(features, features + context), bias=False) if context else None
+        self.set = Part(head.first, slice(features + context, None))
         self.rest = head.rest
         self.register_buffer("f_scale", head.f_scale.clone())
         # û three times ([3, 9]), and the sum of each row of A ([9, 3]), as ForceHead takes A û.
         self.register_buffer("tile", torch.eye(3).repeat(1, 3))
         self.register_buffer("row_sums", head.row_sums.clone())
 
-    def forward(self, points: torch.Tensor, seen: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
-        out = self.rest(self.points(points) + self.set(seen))  # [K, 12]: A row-major, then c
+    def forward(
+        self,
+        points: torch.Tensor,
+        seen: torch.Tensor,
+        size: torch.Tensor,
+        context: torch.Tensor | None = None,
+        member_of: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        first = self.points(points) + self.set(seen)
+        if self.context is not None and context is not None and member_of is not None:
+            first = first + member_of @ self.context(context)
+        out = self.rest(first)  # [K, 12]: A row-major, then c
         a_u = (out[:, :9] * (points[:, 3:6] @ self.tile)) @ self.row_sums
         return (a_u + out[:, 9:]) * (self.f_scale / size)
 
@@ -165,17 +182,24 @@ class ServedGraspNet(nn.Module):
     def __init__(self, net: ReducedNet) -> None:
         super().__init__()
         self.encoders = ServedGraspEncoders(served_members(net))
-        features = served_members(net)[0].point_features
-        self.heads = nn.ModuleList(ServedForceHead(head, features) for head in net.force_heads)
+        member = served_members(net)[0]
+        context = 2 * cast(nn.Linear, member.embed[0]).out_features + 3 if net.force_reads_grasps else 0
+        self.heads = nn.ModuleList(ServedForceHead(head, member.point_features, context) for head in net.force_heads)
         self.reads_field = net.force_reads_field
 
     def forward(self, interaction: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-        g, features, size, summaries = self.encoders(interaction)
+        g, features, size, summaries, contexts, member_of = self.encoders(interaction)
         field = (g * self.encoders.g_scale).mean(0, keepdim=True)
         if len(self.heads) == 0:
             return field, None
         forces = [
-            head(features, torch.cat([summary, g[i : i + 1]], dim=-1) if self.reads_field else summary, size)
+            head(
+                features,
+                torch.cat([summary, g[i : i + 1]], dim=-1) if self.reads_field else summary,
+                size,
+                contexts[i],
+                member_of,
+            )
             for i, (head, summary) in enumerate(zip(self.heads, summaries, strict=True))
         ]
         # One head's forces as they are: a mean of one costs ONNX Runtime three operators a request.

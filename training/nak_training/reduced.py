@@ -204,6 +204,14 @@ class GraspEncoder(Encoder):
     def encode(
         self, interaction: torch.Tensor, mask: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        g, features, summary, _ = self.encode_with_context(interaction, mask)
+        return g, features, summary
+
+    def encode_with_context(
+        self, interaction: torch.Tensor, mask: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """`encode`'s, and what each point sees of the grasps [B, K, 2W + 3] (its grasp's mean embedding,
+        the other grasps' and their centroid's offset), for a force head that reads it."""
         f = self.normalized(interaction)
         alike = same_grasp(f)
         real = torch.ones_like(alike) if mask is None else (mask.unsqueeze(1) & mask.unsqueeze(2)).to(f.dtype)
@@ -223,7 +231,7 @@ class GraspEncoder(Encoder):
         head = self.head[1:](split_linear(self.head[0], [context], summary))
         per_point = (b * f[..., 3:6].unsqueeze(-2)).sum(-1) + head  # [B, K, M]
         share = 1.0 / size if mask is None else mask.unsqueeze(-1).to(f.dtype) / size
-        return (per_point * share).sum(1) * self.g_scale, features, summary
+        return (per_point * share).sum(1) * self.g_scale, features, summary, context
 
     def grasp_sizes(self, features: torch.Tensor) -> torch.Tensor:
         """The count the features carry (their last, its log): two operators a request where counting
@@ -288,24 +296,38 @@ class ForceHead(nn.Module):
     row_sums: torch.Tensor
 
     def __init__(
-        self, width: int, hidden: int, point_features: int = Encoder.POINT_FEATURES, coefficients: int = 0
+        self,
+        width: int,
+        hidden: int,
+        point_features: int = Encoder.POINT_FEATURES,
+        coefficients: int = 0,
+        context: int = 0,
     ) -> None:
         """`width`: the encoder's (its summary has 2 × width values); `hidden`: the head's own, which sets
         its cost per point; `point_features`: what the encoder gives of each point; `coefficients`: how
-        many of the network's own coefficients it reads beside the summary (0: none)."""
+        many of the network's own coefficients it reads beside the summary (0: none); `context`: how many
+        values of what each point sees of the grasps it reads after its features (0: none)."""
         super().__init__()
-        self.first = nn.Linear(point_features + 2 * width + coefficients, hidden)
+        self.first = nn.Linear(point_features + context + 2 * width + coefficients, hidden)
         self.rest = nn.Sequential(nn.GELU(), nn.Linear(hidden, hidden), nn.GELU(), nn.Linear(hidden, 12))
         self.register_buffer("f_scale", torch.ones(1))
         # [9, 3]: 1 at (3i + j, i), summing each row of A (row-major, the MLP's first nine outputs).
         self.register_buffer("row_sums", torch.eye(3).repeat_interleave(3, dim=0), persistent=False)
 
-    def forward(self, points: torch.Tensor, summary: torch.Tensor, grasp_sizes: torch.Tensor) -> torch.Tensor:
-        """`grasp_sizes` [B, K, 1]: the encoder's count of each point's grasp (`Encoder.grasp_sizes`).
+    def forward(
+        self,
+        points: torch.Tensor,
+        summary: torch.Tensor,
+        grasp_sizes: torch.Tensor,
+        context: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """`grasp_sizes` [B, K, 1]: the encoder's count of each point's grasp (`Encoder.grasp_sizes`);
+        `context` [B, K, C]: what each point sees of the grasps, for a head made to read it.
 
         A_k û_k is taken as (A_k's entries ⊙ û_k three times) @ `row_sums`, flat: the [3, 3] reshape of
         a tensor whose leading axes are dynamic costs ONNX Runtime five operators a request, this two."""
-        out = self.rest(split_linear(self.first, [points], summary))
+        per_point = [points] if context is None else [points, context]
+        out = self.rest(split_linear(self.first, per_point, summary))
         u = points[..., 3:6]
         a_u = (out[..., :9] * torch.cat([u, u, u], dim=-1)) @ self.row_sums
         return (a_u + out[..., 9:]) * (self.f_scale / grasp_sizes)
@@ -343,12 +365,16 @@ class ReducedNet(nn.Module):
         members: int = 1,
         force_reads_field: bool = False,
         geometry: bool = False,
+        force_reads_grasps: bool = False,
     ) -> None:
         """`force_width`: the force head's width (None: no force head); `members`: encoders averaged;
         `force_reads_field`: the force head also reads the field's coefficients (normalized), once a set;
-        `geometry`: the input carries each point's surface normal and nodal volume (grasp encoders)."""
+        `geometry`: the input carries each point's surface normal and nodal volume (grasp encoders);
+        `force_reads_grasps`: the force head reads what each point sees of the grasps (grasp encoders)."""
         super().__init__()
 
+        if force_reads_grasps and encoder != "grasps":
+            raise ValueError(f"a force head reads the grasps of grasp encoders only, not of {encoder!r}")
         if geometry and encoder != "grasps":
             raise ValueError(f"surface geometry is an input of grasp encoders only, not of {encoder!r}")
         kinds: dict[str, Callable[[int, int], Encoder]] = {
@@ -363,7 +389,13 @@ class ReducedNet(nn.Module):
         read = modes if force_reads_field else 0
         # An ensemble's members each have a head, fed by their own features, and serve the mean force.
         # One encoder keeps its head unlisted, so its weights keep the names shipped models were saved with.
-        heads = [] if force_width is None else [ForceHead(width, force_width, e.point_features, read) for e in encoders]
+        self.force_reads_grasps = force_reads_grasps
+        context = 2 * width + 3 if force_reads_grasps else 0
+        heads = (
+            []
+            if force_width is None
+            else [ForceHead(width, force_width, e.point_features, read, context) for e in encoders]
+        )
         self.forces: nn.Module | None = None if not heads else heads[0] if members == 1 else nn.ModuleList(heads)
 
     @property
@@ -395,12 +427,15 @@ class ReducedNet(nn.Module):
     ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """One member's g and, with force heads, its head's force on each point."""
         encoder = self.members[member]
-        g, f, summary = encoder.encode(interaction, mask)
+        if self.forces is not None and self.force_reads_grasps:
+            g, f, summary, context = cast(GraspEncoder, encoder).encode_with_context(interaction, mask)
+        else:
+            (g, f, summary), context = encoder.encode(interaction, mask), None
         if self.forces is None:
             return g, None
         if self.force_reads_field:
             summary = torch.cat([summary, g / encoder.g_scale], dim=-1)
-        return g, self.force_heads[member](f, summary, encoder.grasp_sizes(f))
+        return g, self.force_heads[member](f, summary, encoder.grasp_sizes(f), context)
 
 
 class InteractionGraph(nn.Module):

@@ -356,6 +356,7 @@ def reduced_net(config: TrainConfig) -> ReducedNet:
         config.members,
         config.force_reads_field,
         config.interaction_geometry,
+        config.force_reads_grasps,
     )
 
 
