@@ -231,7 +231,7 @@ def test_the_served_error_in_coefficient_space_leaves_out_the_held_nodes_as_nak_
     basis, _ = weighted_basis(train.fields, volumes, 6)
     p = project(val.fields, basis, volumes)
     g = p["g"] + 0.3 * torch.randn(p["g"].shape, generator=torch.Generator().manual_seed(0))
-    _, mask, ids = interaction_batch(dataset.mesh.positions, val)
+    _, mask, ids = interaction_batch(dataset.mesh, val, geometry=False)
     held = HeldNodes(ids, mask, val.fields, volumes)
     norm = (val.fields.double() ** 2).sum(-1) @ volumes.double()
     errors = ReducedTrainer._coefficient_error(g, p["g"], p["missed"], norm.float(), held.squared_error(basis, g))
