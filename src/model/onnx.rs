@@ -81,9 +81,8 @@ pub struct OnnxModel {
     session: Mutex<Session>,
     /// The features form's input with positions already written, to copy when the pool is empty.
     template: Vec<f32>,
-    /// Each node's outward unit normal and lumped volume, for interaction graphs that read them
-    /// (empty otherwise).
-    geometry: Vec<[f32; 4]>,
+    /// Each node's outward unit normal and lumped volume, for interaction graphs that read them.
+    geometry: Option<Vec<[f32; 4]>>,
     pool: Mutex<Vec<Buffers>>,
 }
 
@@ -253,11 +252,7 @@ impl OnnxModel {
             all_nodes: NodeCloud::new(mesh.positions.iter().copied()),
             session: Mutex::new(session),
             template,
-            geometry: if signature.geometry {
-                node_geometry(mesh)
-            } else {
-                Vec::new()
-            },
+            geometry: signature.geometry.then(|| node_geometry(mesh)),
             pool: Mutex::new(Vec::new()),
         };
         model
@@ -277,7 +272,7 @@ impl OnnxModel {
                 let mut points = InteractionPoints::default();
                 let node = mesh.surface_nodes.first().copied().unwrap_or(0);
                 points.push(node, mesh.positions[node as usize], [0.0, 0.0, 0.001]);
-                fill_interaction(&points, &self.geometry, &mut buffers.input);
+                fill_interaction(&points, self.geometry.as_deref(), &mut buffers.input);
                 self.run_network(&buffers.input, 1, |_, _| Ok(()))
             }
         };
@@ -446,12 +441,13 @@ struct Encoded<'a> {
 
 /// Writes each interaction point's rest position and prescribed displacement, [K, 6] row-major, and
 /// with a `geometry` table (one row per node) the point's row of it after them, [K, 10].
-fn fill_interaction(points: &InteractionPoints, geometry: &[[f32; 4]], input: &mut Vec<f32>) {
+fn fill_interaction(points: &InteractionPoints, geometry: Option<&[[f32; 4]]>, input: &mut Vec<f32>) {
     input.clear();
     for ((p, u), &node) in points.positions.iter().zip(&points.displacements).zip(&points.nodes) {
         input.extend(p.iter().chain(u).map(|&v| v as f32));
-        if !geometry.is_empty() {
+        if let Some(geometry) = geometry {
             // Nodes were checked against the mesh when the request was resolved.
+            debug_assert!((node as usize) < geometry.len(), "node {node} outside the mesh");
             input.extend(geometry.get(node as usize).copied().unwrap_or_default());
         }
     }
@@ -708,7 +704,7 @@ impl OnnxModel {
         elapsed_us: &mut f32,
     ) -> Result<(), ModelError> {
         let start = Instant::now();
-        fill_interaction(points, &self.geometry, input);
+        fill_interaction(points, self.geometry.as_deref(), input);
         let result = self.run_network(input, points.len(), |values, forces| {
             into.output.clear();
             into.output.extend_from_slice(values);

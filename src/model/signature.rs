@@ -21,7 +21,7 @@ pub const INTERACTION_GEOMETRY_WIDTH: usize = 10;
 pub enum Input {
     /// `features` f32 [B, N, C]: every node's channels.
     Features,
-    /// `interaction` f32 [B, K, 6]: only the K interaction points.
+    /// `interaction` f32 [B, K, 6 or 10]: only the K interaction points (10: with their surface geometry).
     Interaction,
 }
 
@@ -82,12 +82,17 @@ pub fn read(session: &Session, channels: usize, n: usize, origin: &str) -> Resul
                 Ok(INTERACTION_WIDTH) => false,
                 Ok(INTERACTION_GEOMETRY_WIDTH) => true,
                 _ => {
+                    // A symbolic width would leave nak to guess what the graph reads.
+                    let width = if shape[2] < 0 {
+                        "a symbolic number of".to_string()
+                    } else {
+                        shape[2].to_string()
+                    };
                     return Err(ModelLoadError::new(
                         origin,
                         format!(
-                            "{INTERACTION:?} has {} values a point; the contract gives {INTERACTION_WIDTH} \
-                             (position, displacement) or {INTERACTION_GEOMETRY_WIDTH} (then normal, nodal volume)",
-                            shape[2]
+                            "{INTERACTION:?} has {width} values a point; the contract gives {INTERACTION_WIDTH} \
+                             (position, displacement) or {INTERACTION_GEOMETRY_WIDTH} (then normal, nodal volume)"
                         ),
                     ));
                 }

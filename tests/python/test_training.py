@@ -32,7 +32,7 @@ from nak_training.kelvinlet import Prior, pad_points
 from nak_training.models import Grasped, MeshGNN, build
 from nak_training.grasp_served import ServedGraspNet
 from nak_training.reduced import Encoder, Ensemble, GraspEncoder, InteractionGraph, ReducedNet, project, weighted_basis
-from nak_training.reduced_train import HeldNodes, ReducedTrainer, interaction_batch, load_reduced
+from nak_training.reduced_train import HeldNodes, ReducedTrainer, interaction_batch, interaction_input, load_reduced
 from nak_training.reform import batch_is_fixed, reform
 from nak_training.served import Nak
 from nak_training.static_sizes import fold_static_sizes, refold_interaction_graph
@@ -145,6 +145,13 @@ def test_bad_input_is_refused_naming_the_file_or_key(coarse_data: Path, tmp_path
         parse_config(tiny_config(architecture="pod", forces=True, force_reads_grasps=True), "x.toml")
     with pytest.raises(TrainingInputError, match=r'interaction_geometry = true needs .* encoder = "grasps"'):
         parse_config(tiny_config(architecture="pod", interaction_geometry=True), "x.toml")
+    # The network refuses them too, built from code rather than a configuration.
+    with pytest.raises(ValueError, match="force_reads_grasps needs a force head"):
+        ReducedNet("pod", 8, 32, "grasps", force_reads_grasps=True)
+    with pytest.raises(ValueError, match="a force head reads the grasps of grasp encoders only"):
+        ReducedNet("pod", 8, 32, "linear", force_width=16, force_reads_grasps=True)
+    with pytest.raises(ValueError, match="surface geometry is an input of grasp encoders only"):
+        ReducedNet("pod", 8, 32, "linear", geometry=True)
     with pytest.raises(TrainingInputError, match=r'held_nodes_in_loss = false needs architecture = "pod"'):
         parse_config(tiny_config(architecture="deeponet", held_nodes_in_loss=False), "x.toml")
     bad = tmp_path / "bad.toml"
@@ -534,8 +541,9 @@ def test_training_beats_the_untrained_network_through_nak_eval(
 def reduced(coarse_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Reduced-basis networks from the coarse dataset: a trained POD +Res in three shipping forms (f32
     and f16 basis files, folded graph), its untrained twin, an ensemble of three, two ensembles of two
-    grasp encoders (one trained on the served field's error alone), and a DeepONet +Reg with the pooled
-    encoder."""
+    grasp encoders (one trained on the served field's error alone), a POD +Reg grasp encoder reading
+    surface geometry (its regularizer's Kelvinlet grasps get it too), and a DeepONet +Reg with the
+    pooled encoder."""
     dataset = open_dataset(coarse_data)
     runs = tmp_path_factory.mktemp("reduced-runs", numbered=False)
     models = tmp_path_factory.mktemp("reduced-models")
@@ -548,6 +556,7 @@ def reduced(coarse_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path
         dict(name="pod-ensemble", members=3, basis_precision="f32", **pod),
         dict(name="pod-grasps", encoder="grasps", members=2, basis_precision="f32", **pod),
         dict(name="pod-served-loss", encoder="grasps", members=2, held_nodes_in_loss=False, **pod),
+        dict(name="pod-reg-geometry", method="reg", encoder="grasps", interaction_geometry=True, **pod),
         dict(
             name="deeponet-reg",
             architecture="deeponet",
@@ -586,7 +595,15 @@ def test_reduced_networks_are_served_as_their_graph_and_basis_compute_them(
         ]
         served = {
             name: np.frombuffer(stub.Predict(pb.PredictRequest(model=name, grasps=grasps)).displacements, "<f4")
-            for name in ("pod-trained", "pod-f16", "pod-graph", "pod-ensemble", "pod-grasps", "deeponet-reg")
+            for name in (
+                "pod-trained",
+                "pod-f16",
+                "pod-graph",
+                "pod-ensemble",
+                "pod-grasps",
+                "pod-reg-geometry",
+                "deeponet-reg",
+            )
         }
 
     positions = dataset.mesh.positions
@@ -597,13 +614,18 @@ def test_reduced_networks_are_served_as_their_graph_and_basis_compute_them(
     prior = Prior(dataset.mesh.prior[0], 0.02, dataset.mesh.prior[2])
     prior_field = prior.evaluate(positions, points, u, mask)[0].numpy().reshape(-1)
 
-    def expected(name: str) -> np.ndarray:
-        """The graph's coefficients (onnxruntime) times the basis file, plus the prior; the held nodes
-        answer the grasp (docs/design.md §7)."""
+    nodes = torch.from_numpy(sample.nodes)
+    with_geometry = interaction_input(
+        dataset.mesh, nodes, positions[nodes], torch.from_numpy(sample.displacements), geometry=True
+    )[None].numpy()
+
+    def expected(name: str, inputs: np.ndarray = interaction, prior: bool = True) -> np.ndarray:
+        """The graph's coefficients (onnxruntime) times the basis file, plus the prior for a residual;
+        the held nodes answer the grasp (docs/design.md §7)."""
         session = onnxruntime.InferenceSession(str(reduced / name / "model.onnx"))
-        (g,) = session.run(["coefficients"], {"interaction": interaction})
+        (g,) = session.run(["coefficients"], {"interaction": inputs})
         basis = load_file(str(reduced / name / "basis.safetensors"))["basis"]
-        field = (basis @ g[0]).reshape(-1, 3) + prior_field.reshape(-1, 3)
+        field = (basis @ g[0]).reshape(-1, 3) + (prior_field.reshape(-1, 3) if prior else 0.0)
         field[sample.nodes] = sample.displacements
         return np.asarray(field.reshape(-1))
 
@@ -615,6 +637,7 @@ def test_reduced_networks_are_served_as_their_graph_and_basis_compute_them(
     assert 0 < relative(served["pod-f16"], expected("pod-trained")) < 1e-3  # f16 basis: 2⁻¹¹ relative per value
     assert relative(served["pod-ensemble"], expected("pod-ensemble")) < 1e-5
     assert relative(served["pod-grasps"], expected("pod-grasps")) < 1e-5
+    assert relative(served["pod-reg-geometry"], expected("pod-reg-geometry", with_geometry, prior=False)) < 1e-5
     assert np.isfinite(served["deeponet-reg"]).all()
 
 

@@ -50,7 +50,7 @@ class ServedMember(nn.Module):
     def __init__(self, member: GraspEncoder) -> None:
         super().__init__()
         features = member.point_features
-        context = 2 * cast(nn.Linear, member.embed[0]).out_features + 3
+        context = member.context_width(cast(nn.Linear, member.embed[0]).out_features)
         self.embed = member.embed
         matrices, head = cast(nn.Linear, member.matrices[0]), cast(nn.Linear, member.head[0])
         self.matrices_points = Part(matrices, slice(0, features), bias=False)
@@ -168,7 +168,9 @@ class ServedForceHead(nn.Module):
         member_of: torch.Tensor | None = None,
     ) -> torch.Tensor:
         first = self.points(points) + self.set(seen)
-        if self.context is not None and context is not None and member_of is not None:
+        if self.context is not None:
+            if context is None or member_of is None:
+                raise ValueError("this force head reads the grasps: give it their context and each point's grasp")
             first = first + member_of @ self.context(context)
         out = self.rest(first)  # [K, 12]: A row-major, then c
         a_u = (out[:, :9] * (points[:, 3:6] @ self.tile)) @ self.row_sums
@@ -181,9 +183,10 @@ class ServedGraspNet(nn.Module):
 
     def __init__(self, net: ReducedNet) -> None:
         super().__init__()
-        self.encoders = ServedGraspEncoders(served_members(net))
-        member = served_members(net)[0]
-        context = 2 * cast(nn.Linear, member.embed[0]).out_features + 3 if net.force_reads_grasps else 0
+        members = served_members(net)
+        self.encoders = ServedGraspEncoders(members)
+        member = members[0]
+        context = member.context_width(cast(nn.Linear, member.embed[0]).out_features) if net.force_reads_grasps else 0
         self.heads = nn.ModuleList(ServedForceHead(head, member.point_features, context) for head in net.force_heads)
         self.reads_field = net.force_reads_field
 

@@ -66,14 +66,15 @@ class Encoder(nn.Module):
     g_scale: torch.Tensor
     v_scale: torch.Tensor
 
-    # What each point gives a force head: its normalized position and displacement first.
-    POINT_FEATURES = 6
+    # What each point gives a force head without surface geometry (`point_features` counts it in): its
+    # normalized position and displacement first.
+    BASE_POINT_FEATURES = 6
 
     def __init__(self, modes: int, geometry: bool = False) -> None:
         super().__init__()
         self.modes = modes
         self.geometry = geometry
-        self.point_features = self.POINT_FEATURES + (GEOMETRY_WIDTH if geometry else 0)
+        self.point_features = self.BASE_POINT_FEATURES + (GEOMETRY_WIDTH if geometry else 0)
         for name, shape in [("x_mean", 3), ("x_std", 3), ("u_scale", 3), ("g_scale", modes)]:
             self.register_buffer(name, torch.ones(shape) if name != "x_mean" else torch.zeros(shape))
         if geometry:
@@ -90,8 +91,8 @@ class Encoder(nn.Module):
         shift = torch.cat([self.x_mean, torch.zeros_like(self.u_scale)])
         scale = torch.cat([self.x_std, self.u_scale])
         if self.geometry:
-            shift = torch.cat([shift, torch.zeros(GEOMETRY_WIDTH)])
-            scale = torch.cat([scale, torch.ones(3), self.v_scale])
+            shift = torch.cat([shift, shift.new_zeros(GEOMETRY_WIDTH)])
+            scale = torch.cat([scale, scale.new_ones(3), self.v_scale])
         return shift, scale
 
     def normalized(self, interaction: torch.Tensor) -> torch.Tensor:
@@ -105,7 +106,7 @@ class Encoder(nn.Module):
     def encode(
         self, interaction: torch.Tensor, mask: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """g [B, M], each point's features [B, K, POINT_FEATURES] (its normalized position and displacement
+        """g [B, M], each point's features [B, K, point_features] (its normalized position and displacement
         first) and the set's summary [B, 2W], the last two for a force head."""
         raise NotImplementedError
 
@@ -189,15 +190,15 @@ class GraspEncoder(Encoder):
 
     r_scale: torch.Tensor
 
-    # Position, displacement (with geometry: normal, volume), offset from the grasp's centroid, log of
-    # the grasp's count (last).
-    POINT_FEATURES = 10
+    # Position and displacement, offset from the grasp's centroid, log of the grasp's count (last); with
+    # surface geometry its normal and volume after the displacement (`point_features`).
+    BASE_POINT_FEATURES = 10
 
     def __init__(self, modes: int, width: int, geometry: bool = False) -> None:
         super().__init__(modes, geometry)
         self.register_buffer("r_scale", torch.ones(1))
         self.embed = mlp([self.point_features, width, width, width])
-        context = 2 * width + 3  # the own and other grasps' mean embeddings, the others' centroid offset
+        context = self.context_width(width)
         self.matrices = mlp([self.point_features + context + 2 * width, width, width, 3 * modes])
         self.head = mlp([context + 2 * width, width, modes])
 
@@ -206,6 +207,12 @@ class GraspEncoder(Encoder):
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         g, features, summary, _ = self.encode_with_context(interaction, mask)
         return g, features, summary
+
+    @staticmethod
+    def context_width(width: int) -> int:
+        """What each point sees of the grasps: its own grasp's and the other grasps' mean embeddings, and
+        the offset of the others' centroid."""
+        return 2 * width + 3
 
     def encode_with_context(
         self, interaction: torch.Tensor, mask: torch.Tensor | None = None
@@ -299,7 +306,7 @@ class ForceHead(nn.Module):
         self,
         width: int,
         hidden: int,
-        point_features: int = Encoder.POINT_FEATURES,
+        point_features: int = Encoder.BASE_POINT_FEATURES,
         coefficients: int = 0,
         context: int = 0,
     ) -> None:
@@ -373,6 +380,8 @@ class ReducedNet(nn.Module):
         `force_reads_grasps`: the force head reads what each point sees of the grasps (grasp encoders)."""
         super().__init__()
 
+        if force_reads_grasps and force_width is None:
+            raise ValueError("force_reads_grasps needs a force head (force_width)")
         if force_reads_grasps and encoder != "grasps":
             raise ValueError(f"a force head reads the grasps of grasp encoders only, not of {encoder!r}")
         if geometry and encoder != "grasps":
@@ -390,7 +399,7 @@ class ReducedNet(nn.Module):
         # An ensemble's members each have a head, fed by their own features, and serve the mean force.
         # One encoder keeps its head unlisted, so its weights keep the names shipped models were saved with.
         self.force_reads_grasps = force_reads_grasps
-        context = 2 * width + 3 if force_reads_grasps else 0
+        context = GraspEncoder.context_width(width) if force_reads_grasps else 0
         heads = (
             []
             if force_width is None
@@ -439,7 +448,7 @@ class ReducedNet(nn.Module):
 
 
 class InteractionGraph(nn.Module):
-    """What is exported: interaction [1, K, 6] → coefficients [1, M], or → displacement [1, N, 3] with
+    """What is exported: interaction [1, K, 6 or 10] → coefficients [1, M], or → displacement [1, N, 3] with
     the basis in the graph (`folded`: Φ itself, or the trunk over the node positions, which ONNX
     Runtime folds into a constant when it loads the graph)."""
 

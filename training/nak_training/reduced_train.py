@@ -304,8 +304,8 @@ class ReducedTrainer(Run):
         than the FEM field of a similar grasp, and dividing by it lets the regularizer swamp the data)."""
         assert self.q is not None
         nodes, displacements = self.q.draw(self.config.q_batch)
-        _, points, disp, mask = pad_points(self.mesh.positions, nodes, displacements)
-        interaction = torch.cat([points.float(), disp.float()], dim=-1)
+        ids, points, disp, mask = pad_points(self.mesh.positions, nodes, displacements)
+        interaction = interaction_input(self.mesh, ids, points, disp, self.config.interaction_geometry)
         g = self.model.encoder(interaction, mask)
         if self.basis is not None:
             kelvinlet = self.prior.evaluate(self.mesh.positions, points, disp, mask).float()

@@ -48,6 +48,9 @@ def reform(directory: Path) -> str:
     old = read_graph(graph_path)
     if batch_is_fixed(old):
         return f"{directory}: already in the served form"
+    if config.interaction_geometry:
+        # Graphs have been exported in the served form since before they could read surface geometry.
+        raise TrainingInputError(config_path, "reads surface geometry but is not in the served form: export it again")
     net = reduced_net(config)
     load_graph_weights(net, old, graph_path)
     net.eval()
