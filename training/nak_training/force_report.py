@@ -1,6 +1,6 @@
 """Grasp forces against the finite elements, as nak serves them: per model, `nak eval`'s force error on
 the test split per subset; a figure of each served force component against the FEM's; what a force
-head costs a request (the same graph timed through nak eval with its `forces` output cut away); and how
+head costs a request (the same graph with its `forces` output cut away, both run as nak runs them); and how
 the FEM's force grows with the nodes a grasper holds, which a head must see to learn it.
 
 python -m nak_training forces --data DATA --model pod-base-forces-nl   (writes docs/reports/forces*)
@@ -9,9 +9,8 @@ python -m nak_training forces --data DATA --model pod-base-forces-nl   (writes d
 from __future__ import annotations
 
 import json
-import shutil
 import tempfile
-import tomllib
+import time
 from pathlib import Path
 from typing import Any
 
@@ -21,17 +20,21 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import onnx.utils  # noqa: E402
-import tomli_w  # noqa: E402
+import onnxruntime  # noqa: E402
+import torch  # noqa: E402
 from safetensors.numpy import load_file  # noqa: E402
 
-from .dataset import Dataset, is_failed, open_dataset, read_json  # noqa: E402
+from .dataset import Dataset, Mesh, Sample, is_failed, open_dataset, read_json  # noqa: E402
 from .errors import TrainingInputError  # noqa: E402
 from .evaluate import read_manifest, refuse_scoring_on_its_training_set  # noqa: E402
+from .reduced_train import interaction_input  # noqa: E402
 from .served import Nak  # noqa: E402
 
 # The linearization the nonlinear networks' forces build on, scored beside them.
 PRIOR = "green-tangent"
 SUBSETS = ("single", "multi", "combined")
+# Each timed request runs through both graphs, in turn, this many times; a head's cost is the median of
+# the differences request by request, which the machine's drift between runs cannot reach.
 TIMING_ROUNDS = 5
 TIMED_REQUESTS = 400
 # Single-grasper pushes deeper than this (metres) are grouped by held-node count: shallow pushes would
@@ -59,12 +62,11 @@ def write_force_report(data: Path, models: list[Path], nak: Path, mesh: Path, ou
         root.mkdir()
         for directory in models:
             (root / directory.name).symlink_to(directory.resolve(), target_is_directory=True)
-            without_forces(directory, root / f"{directory.name}-no-forces")
         served = Nak(nak, mesh)
         flags = ["--models", str(root), f"--{prior}"]
-        reports = {name: evaluation(served, data, name, flags, Path(tmp), latency=0) for name in names}
+        reports = {name: evaluation(served, data, name, flags, Path(tmp)) for name in names}
         forces = {name: served_forces(served, data, name, flags, Path(tmp)) for name in names}
-        costs = {d.name: head_cost(served, data, d.name, flags, Path(tmp)) for d in models}
+        costs = {d.name: head_cost(d, dataset.mesh, test[:TIMED_REQUESTS], Path(tmp)) for d in models}
     out.mkdir(parents=True, exist_ok=True)
     figure = out / "served-against-fem.png"
     plot(truth, forces, {s.index: s.subset for s in test}, figure)
@@ -98,29 +100,19 @@ def force_by_count(dataset: Dataset) -> str:
     return "\n".join(lines) + "\n"
 
 
-def without_forces(model: Path, into: Path) -> None:
-    """A copy of `model` whose graph ends before its `forces` output (onnx.utils.extract_model) and
-    whose manifest has no [forces]: the same network without its force head, to time against it."""
-    into.mkdir()
-    graph = onnx.load(str(model / "model.onnx"))
-    kept = [o.name for o in graph.graph.output if o.name != "forces"]
-    onnx.utils.extract_model(str(model / "model.onnx"), str(into / "model.onnx"), ["interaction"], kept)
-    manifest = tomllib.loads((model / "manifest.toml").read_text())
-    manifest.pop("forces")
-    manifest["model"]["name"] = into.name
-    (into / "manifest.toml").write_text(tomli_w.dumps(manifest))
-    for extra in ("basis.safetensors", "config.toml"):
-        if (model / extra).is_file():
-            shutil.copy(model / extra, into / extra)
+def without_forces(graph: Path, into: Path) -> None:
+    """The graph at `graph` ending before its `forces` output (onnx.utils.extract_model), written to
+    `into`: the same network without its force head, to time against it."""
+    kept = [o.name for o in onnx.load(str(graph)).graph.output if o.name != "forces"]
+    onnx.utils.extract_model(str(graph), str(into), ["interaction"], kept)
 
 
-def evaluation(
-    served: Nak, data: Path, model: str, flags: list[str], tmp: Path, latency: int, split: str = "test"
-) -> dict[str, Any]:
+def evaluation(served: Nak, data: Path, model: str, flags: list[str], tmp: Path) -> dict[str, Any]:
+    """`nak eval`'s report of `model` on the test split."""
     output = tmp / f"{model}-eval.json"
     served.run(
-        "eval", "--data", str(data), "--model", model, "--split", split, "--output", str(output),
-        "--latency-samples", str(latency), *flags,
+        "eval", "--data", str(data), "--model", model, "--split", "test", "--output", str(output),
+        "--latency-samples", "0", *flags,
     )  # fmt: skip
     report: dict[str, Any] = json.loads(output.read_text())
     return report
@@ -138,16 +130,55 @@ def served_forces(served: Nak, data: Path, model: str, flags: list[str], tmp: Pa
     return {int(i): f for i, f in zip(tensors["index"], tensors["grasp_forces"], strict=True)}
 
 
-def head_cost(served: Nak, data: Path, model: str, flags: list[str], tmp: Path) -> dict[str, float]:
-    """Network and total p50 (µs) with and without the force head, the better of TIMING_ROUNDS alternating
-    runs each, over TIMED_REQUESTS requests spread over the whole set (the test split alone is too few to time)."""
-    best = {"with": float("inf"), "without": float("inf")}
-    for _ in range(TIMING_ROUNDS):
-        for key, name in (("with", model), ("without", f"{model}-no-forces")):
-            latency = evaluation(served, data, name, flags, tmp, latency=TIMED_REQUESTS, split="all")["latency_us"]
-            best[key] = min(best[key], float(latency["network"]["p50"]))
-            best[f"total_{key}"] = min(best.get(f"total_{key}", float("inf")), float(latency["total"]["p50"]))
-    return best
+def served_session(graph: Path) -> onnxruntime.InferenceSession:
+    """An ONNX Runtime session set as nak sets one for an interaction graph (src/model/onnx.rs): one
+    intra-op thread that does not spin, every graph optimization."""
+    options = onnxruntime.SessionOptions()
+    options.intra_op_num_threads = 1
+    options.inter_op_num_threads = 1
+    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    options.graph_optimization_level = onnxruntime.GraphOptimizationLevel.ORT_ENABLE_ALL
+    return onnxruntime.InferenceSession(str(graph), options, providers=["CPUExecutionProvider"])
+
+
+def timing_requests(mesh: Mesh, samples: list[Sample], width: int) -> list[np.ndarray]:
+    """What nak feeds an interaction graph of input `width` for each sample's grasps, [1, K, width] f32."""
+    requests = []
+    for sample in samples:
+        ids = torch.from_numpy(sample.nodes)
+        displacements = torch.from_numpy(sample.displacements)
+        request = interaction_input(mesh, ids, mesh.positions[ids], displacements, geometry=width > 6)
+        requests.append(request[None].numpy())
+    return requests
+
+
+def head_cost(model: Path, mesh: Mesh, samples: list[Sample], tmp: Path) -> dict[str, float]:
+    """The graph's time a request (µs, median) with and without its force head, and the head's: the
+    median of the two's difference request by request. Each request runs through both in turn, the
+    order alternating, TIMING_ROUNDS times after a pass to warm up; the time is the calling thread's
+    CPU time (ONNX Runtime runs a one-thread session on it), which other work on the machine does not
+    stretch as it stretches the wall clock."""
+    cut = tmp / f"{model.name}-no-forces.onnx"
+    without_forces(model / "model.onnx", cut)
+    sessions = (served_session(model / "model.onnx"), served_session(cut))
+    width = sessions[0].get_inputs()[0].shape[-1]
+    requests = timing_requests(mesh, samples, int(width))
+    for request in requests:
+        for session in sessions:
+            session.run(None, {"interaction": request})
+    times = np.zeros((2, TIMING_ROUNDS, len(requests)))
+    for r in range(TIMING_ROUNDS):
+        for i, request in enumerate(requests):
+            for which in (0, 1) if (r + i) % 2 == 0 else (1, 0):
+                start = time.thread_time_ns()
+                sessions[which].run(None, {"interaction": request})
+                times[which, r, i] = (time.thread_time_ns() - start) / 1e3
+    return {
+        "with": float(np.median(times[0])),
+        "without": float(np.median(times[1])),
+        "head": float(np.median(times[0] - times[1])),
+        "requests": len(requests),
+    }
 
 
 def plot(
@@ -198,17 +229,17 @@ def markdown(data: Path, reports: dict[str, dict[str, Any]], costs: dict[str, di
     if costs:
         lines += [
             "What the force head costs a request: the same graph with its `forces` output cut away",
-            f"(`onnx.utils.extract_model`), both timed by `nak eval` one request at a time, the better of {TIMING_ROUNDS}",
-            f"alternating runs of {TIMED_REQUESTS} requests spread over the whole set each (the network runs beside the prior,",
-            "so a request's total grows by less than the network's time):",
+            "(`onnx.utils.extract_model`), both run by ONNX Runtime as nak runs an interaction graph (one intra-op",
+            f"thread, no spinning, every graph optimization) on the first {TIMED_REQUESTS} test requests or fewer, each through",
+            f"both graphs in turn, the order alternating, {TIMING_ROUNDS} times; the calling thread's CPU time, median over",
+            "requests and rounds; the head's cost is the median of the differences request by request:",
             "",
-            "| Model | network p50 with forces | without | total p50 with | without |",
+            "| Model | requests | graph with forces | without | the head |",
             "|---|---:|---:|---:|---:|",
         ]
         for name, c in costs.items():
             lines.append(
-                f"| `{name}` | {c['with']:.1f} µs | {c['without']:.1f} µs | {c['total_with']:.1f} µs | "
-                f"{c['total_without']:.1f} µs |"
+                f"| `{name}` | {c['requests']:.0f} | {c['with']:.1f} µs | {c['without']:.1f} µs | **{c['head']:.1f} µs** |"
             )
         lines.append("")
     return "\n".join(lines)
