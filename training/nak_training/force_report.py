@@ -27,6 +27,7 @@ from safetensors.numpy import load_file  # noqa: E402
 from .dataset import Dataset, Mesh, Sample, is_failed, open_dataset, read_json  # noqa: E402
 from .errors import TrainingInputError  # noqa: E402
 from .evaluate import read_manifest, refuse_scoring_on_its_training_set  # noqa: E402
+from .reduced import INTERACTION_WIDTH  # noqa: E402
 from .reduced_train import interaction_input  # noqa: E402
 from .served import Nak  # noqa: E402
 
@@ -147,7 +148,7 @@ def timing_requests(mesh: Mesh, samples: list[Sample], width: int) -> list[np.nd
     for sample in samples:
         ids = torch.from_numpy(sample.nodes)
         displacements = torch.from_numpy(sample.displacements)
-        request = interaction_input(mesh, ids, mesh.positions[ids], displacements, geometry=width > 6)
+        request = interaction_input(mesh, ids, mesh.positions[ids], displacements, geometry=width > INTERACTION_WIDTH)
         requests.append(request[None].numpy())
     return requests
 

@@ -50,7 +50,7 @@ class ServedMember(nn.Module):
     def __init__(self, member: GraspEncoder) -> None:
         super().__init__()
         features = member.point_features
-        context = member.context_width(cast(nn.Linear, member.embed[0]).out_features)
+        context = member.context_features
         self.embed = member.embed
         matrices, head = cast(nn.Linear, member.matrices[0]), cast(nn.Linear, member.head[0])
         self.matrices_points = Part(matrices, slice(0, features), bias=False)
@@ -186,7 +186,7 @@ class ServedGraspNet(nn.Module):
         members = served_members(net)
         self.encoders = ServedGraspEncoders(members)
         member = members[0]
-        context = member.context_width(cast(nn.Linear, member.embed[0]).out_features) if net.force_reads_grasps else 0
+        context = member.context_features if net.force_reads_grasps else 0
         self.heads = nn.ModuleList(ServedForceHead(head, member.point_features, context) for head in net.force_heads)
         self.reads_field = net.force_reads_field
 

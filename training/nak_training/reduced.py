@@ -198,21 +198,17 @@ class GraspEncoder(Encoder):
         super().__init__(modes, geometry)
         self.register_buffer("r_scale", torch.ones(1))
         self.embed = mlp([self.point_features, width, width, width])
-        context = self.context_width(width)
-        self.matrices = mlp([self.point_features + context + 2 * width, width, width, 3 * modes])
-        self.head = mlp([context + 2 * width, width, modes])
+        # What each point sees of the grasps: its own grasp's and the other grasps' mean embeddings, and
+        # the offset of the others' centroid.
+        self.context_features = 2 * width + 3
+        self.matrices = mlp([self.point_features + self.context_features + 2 * width, width, width, 3 * modes])
+        self.head = mlp([self.context_features + 2 * width, width, modes])
 
     def encode(
         self, interaction: torch.Tensor, mask: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         g, features, summary, _ = self.encode_with_context(interaction, mask)
         return g, features, summary
-
-    @staticmethod
-    def context_width(width: int) -> int:
-        """What each point sees of the grasps: its own grasp's and the other grasps' mean embeddings, and
-        the offset of the others' centroid."""
-        return 2 * width + 3
 
     def encode_with_context(
         self, interaction: torch.Tensor, mask: torch.Tensor | None = None
@@ -399,7 +395,7 @@ class ReducedNet(nn.Module):
         # An ensemble's members each have a head, fed by their own features, and serve the mean force.
         # One encoder keeps its head unlisted, so its weights keep the names shipped models were saved with.
         self.force_reads_grasps = force_reads_grasps
-        context = GraspEncoder.context_width(width) if force_reads_grasps else 0
+        context = cast(GraspEncoder, encoders[0]).context_features if force_reads_grasps else 0
         heads = (
             []
             if force_width is None
