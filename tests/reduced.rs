@@ -107,6 +107,12 @@ fn refuses_a_wrong_interaction_input_or_basis() {
         err.contains("\"interaction\" has 5 values a point") && err.contains("6 (position, displacement) or 10"),
         "{err}"
     );
+    // A symbolic width would leave nak to guess which of the two the graph reads.
+    let err = load_error(&faulty.join("interaction-symbolic-width/interaction-symbolic-width"));
+    assert!(
+        err.contains("\"interaction\" has a symbolic number of values a point") && err.contains("or 10"),
+        "{err}"
+    );
     let err = load_error(&faulty.join("basis-wrong-size/basis-wrong-size"));
     let n = coarse().node_count();
     assert!(

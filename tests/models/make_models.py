@@ -162,11 +162,13 @@ def write_reduced(
     basis_hash: str | None = None,
     modes: int = REDUCED_MODES,
     width: int = 6,
+    declared_width: int | str | None = None,
     forces: str | None = None,
 ) -> None:
     """A model of the interaction form (docs/design.md §7); `basis` (default: a random one) goes in the graph
     (`folded`) or beside it; `forces` adds a `forces` output: "points" [B, K, 3] as the contract says,
-    "two-axes" [B, K, 2] or "per-set" [B, 3] (wrong shape, wrong rank)."""
+    "two-axes" [B, K, 2] or "per-set" [B, 3] (wrong shape, wrong rank). The input declares `width` values
+    a point unless `declared_width` (a number, or a name for a symbolic width) says otherwise."""
     g = GraphBuilder(seed)
     coefficients = set_encoder(g, modes, width)
     outputs = []
@@ -185,7 +187,13 @@ def write_reduced(
     graph = helper.make_graph(
         g.nodes,
         directory.name,
-        [helper.make_tensor_value_info("interaction", TensorProto.FLOAT, ["batch", "points", width])],
+        [
+            helper.make_tensor_value_info(
+                "interaction",
+                TensorProto.FLOAT,
+                ["batch", "points", width if declared_width is None else declared_width],
+            )
+        ],
         [output, *outputs],
         g.initializers,
     )
@@ -448,6 +456,7 @@ def main() -> None:
         ("basis-modes-mismatch", {"basis": random_basis(coarse, REDUCED_MODES - 4, 1)}),
         ("forces-two-axes", {"forces": "two-axes"}),
         ("forces-per-set", {"forces": "per-set"}),
+        ("interaction-symbolic-width", {"declared_width": "values"}),
     ]
     for seed, (name, extra) in enumerate(bad_reduced, start=31):
         write_reduced(faulty / name / name, coarse, seed, name, **extra)
