@@ -23,11 +23,11 @@ import torch
 from safetensors.numpy import load_file
 from conftest import ROOT, start_server
 from nak_training.config import load_config, parse_config
-from nak_training.dataset import open_dataset
+from nak_training.dataset import Sample, open_dataset
 from nak_training.errors import TrainingInputError
 from nak_training.evaluate import evaluate, nak_eval
 from nak_training.export import export
-from nak_training.force_report import write_force_report
+from nak_training.force_report import by_direction, push_cosines, write_force_report
 from nak_training.kelvinlet import Prior, pad_points
 from nak_training.models import Grasped, MeshGNN, build
 from nak_training.grasp_served import ServedGraspNet
@@ -994,7 +994,30 @@ def test_a_force_head_is_trained_exported_and_served_as_the_sum_of_its_point_for
     text = report.read_text()
     assert "| `green-linear` | single |" in text and "| `trained` | combined |" in text, text
     assert "| `trained` |" in text.split("What the force head costs")[1], text
+    assert "| `trained` | single |" in text.split("Where the heads miss")[1], text
     assert (tmp_path / "forces" / "served-against-fem.png").stat().st_size > 10_000
+
+
+def test_grasp_force_misses_are_grouped_by_the_push_against_the_held_nodes_normal() -> None:
+    # Node 0's outward normal is +z, node 1's +x; node 2 is held by both grasps and counts for the first.
+    normals = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    sample = Sample(
+        index=7,
+        subset="multi",
+        split="test",
+        nodes=np.array([0, 2, 1]),
+        displacements=np.array([[0.0, 0.0, -0.01], [0.0, 0.0, -0.01], [0.01, 0.0, 0.01]]),
+        grasp_of_point=np.array([0, 0, 1]),
+        forces=np.array([[0.0, 0.0, 2.0], [1.0, 0.0, 0.0]]),
+    )
+    cosines = push_cosines(sample, normals, 2)
+    assert np.allclose(cosines, [-1 / np.sqrt(2), 1 / np.sqrt(2)])  # normals summed over the held nodes
+    assert np.isnan(push_cosines(sample, normals, 3)[2])  # a grasp that shows no node of its own
+    assert sample.forces is not None
+    served = {"net": {7: sample.forces * np.array([[1.0], [1.5]])}}  # 0 % pushing in, 50 % pulling out
+    table = by_direction([sample], normals, {7: sample.forces}, served)
+    assert "| `net` | multi | 0.0 % (1) | – | – | 50.0 % (1) |" in table, table
+    assert "| `net` | single | – | – | – | – |" in table, table
 
 
 def test_the_mesh_gnn_carries_its_edges_and_is_served_as_onnxruntime_computes_it(

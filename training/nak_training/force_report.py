@@ -41,6 +41,9 @@ TIMED_REQUESTS = 400
 # Single-grasper pushes deeper than this (metres) are grouped by held-node count: shallow pushes would
 # mix the count's effect with the depth's.
 DEEP_PUSH = 0.05
+# Grasps grouped by the cosine of their displacement with the outward normal of the nodes they hold:
+# a push into the organ compresses the tissue under it, a pull stretches it.
+DIRECTIONS = ((-1.0, -0.5, "into the organ"), (-0.5, 0.0, "oblique, in"), (0.0, 0.5, "oblique, out"), (0.5, 1.0, "out"))
 
 
 def write_force_report(data: Path, models: list[Path], nak: Path, mesh: Path, out: Path, prior: str = PRIOR) -> Path:
@@ -72,8 +75,59 @@ def write_force_report(data: Path, models: list[Path], nak: Path, mesh: Path, ou
     figure = out / "served-against-fem.png"
     plot(truth, forces, {s.index: s.subset for s in test}, figure)
     path = out.with_suffix(".md")
-    path.write_text(markdown(dataset.root, reports, costs, figure.relative_to(path.parent)) + force_by_count(dataset))
+    misses = by_direction(test, dataset.mesh.normals.numpy(), truth, {d.name: forces[d.name] for d in models})
+    path.write_text(
+        markdown(dataset.root, reports, costs, figure.relative_to(path.parent)) + misses + force_by_count(dataset)
+    )
     return path
+
+
+def push_cosines(sample: Sample, normals: np.ndarray, grasps: int) -> np.ndarray:
+    """Per grasp of `sample` (`grasps` of them), the cosine of its displacement with the mean outward normal
+    of the nodes it holds [G] (NaN for a grasp that shows no node of its own: each node counts for the
+    first grasp holding it)."""
+    cosines = np.full(grasps, np.nan)
+    for g in range(grasps):
+        held = sample.grasp_of_point == g
+        if held.any():
+            u = sample.displacements[held][0]
+            n = normals[sample.nodes[held]].sum(0)
+            cosines[g] = u @ n / max(float(np.linalg.norm(u) * np.linalg.norm(n)), 1e-30)
+    return cosines
+
+
+def by_direction(
+    samples: list[Sample], normals: np.ndarray, truth: dict[int, np.ndarray], served: dict[str, dict[int, np.ndarray]]
+) -> str:
+    """A table of each model's mean relative grasp-force error per subset and push direction (DIRECTIONS)."""
+    if not served:
+        return ""
+    cosines = {s.index: push_cosines(s, normals, len(truth[s.index])) for s in samples if s.index in truth}
+    subset = {s.index: s.subset for s in samples}
+    header = " | ".join(f"{name} ({lo:g} to {hi:g})" for lo, hi, name in DIRECTIONS)
+    lines = [
+        "",
+        "Where the heads miss: the mean |F̂ − F| / |F| (and the grasps) by the direction of the grasp's",
+        "displacement, the cosine of its angle with the outward surface normal of the nodes it holds:",
+        "",
+        f"| Model | Subset | {header} |",
+        "|---|---|" + "---:|" * len(DIRECTIONS),
+    ]
+    for name, forces in served.items():
+        for kind in ("single", "multi"):
+            errors: list[list[float]] = [[] for _ in DIRECTIONS]
+            for index, fem in truth.items():
+                if subset.get(index) != kind or index not in forces:
+                    continue
+                relative = np.linalg.norm(forces[index][: len(fem)] - fem, axis=1) / np.linalg.norm(fem, axis=1)
+                for error, cosine in zip(relative, cosines[index], strict=True):
+                    # The last bin holds its upper end (a pull straight out, cosine 1).
+                    bins = [i for i, (lo, hi, _) in enumerate(DIRECTIONS) if lo <= cosine < hi or cosine == hi == 1.0]
+                    if bins:
+                        errors[bins[0]].append(float(error))
+            cells = " | ".join(f"{100 * np.mean(e):.1f} % ({len(e)})" if e else "–" for e in errors)
+            lines.append(f"| `{name}` | {kind} | {cells} |")
+    return "\n".join(lines) + "\n"
 
 
 def force_by_count(dataset: Dataset) -> str:
