@@ -104,6 +104,7 @@ def by_direction(
         return ""
     cosines = {s.index: push_cosines(s, normals, len(truth[s.index])) for s in samples if s.index in truth}
     subset = {s.index: s.subset for s in samples}
+    inner_edges = [hi for _, hi, _ in DIRECTIONS[:-1]]
     header = " | ".join(f"{name} ({lo:g} to {hi:g})" for lo, hi, name in DIRECTIONS)
     lines = [
         "",
@@ -121,10 +122,8 @@ def by_direction(
                     continue
                 relative = np.linalg.norm(forces[index][: len(fem)] - fem, axis=1) / np.linalg.norm(fem, axis=1)
                 for error, cosine in zip(relative, cosines[index], strict=True):
-                    # The last bin holds its upper end (a pull straight out, cosine 1).
-                    bins = [i for i, (lo, hi, _) in enumerate(DIRECTIONS) if lo <= cosine < hi or cosine == hi == 1.0]
-                    if bins:
-                        errors[bins[0]].append(float(error))
+                    if not np.isnan(cosine):
+                        errors[int(np.digitize(cosine, inner_edges))].append(float(error))
             cells = " | ".join(f"{100 * np.mean(e):.1f} % ({len(e)})" if e else "–" for e in errors)
             lines.append(f"| `{name}` | {kind} | {cells} |")
     return "\n".join(lines) + "\n"
