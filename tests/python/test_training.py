@@ -27,7 +27,7 @@ from nak_training.dataset import Sample, open_dataset
 from nak_training.errors import TrainingInputError
 from nak_training.evaluate import evaluate, nak_eval
 from nak_training.export import export
-from nak_training.force_report import by_direction, push_cosines, write_force_report
+from nak_training.force_report import by_direction, field_only, push_cosines, write_force_report
 from nak_training.kelvinlet import Prior, pad_points
 from nak_training.models import Grasped, MeshGNN, build
 from nak_training.grasp_served import ServedGraspNet
@@ -989,13 +989,21 @@ def test_a_force_head_is_trained_exported_and_served_as_the_sum_of_its_point_for
         return
     # The force report: the prior and the network per subset, the figure, and the head's cost.
     report = write_force_report(
-        coarse_data, [models / "trained"], nak_binary, COARSE, tmp_path / "forces", "green-linear"
+        coarse_data, [models / "trained"], nak_binary, COARSE, tmp_path / "forces", tmp_path, "green-linear"
     )
     text = report.read_text()
     assert "| `green-linear` | single |" in text and "| `trained` | combined |" in text, text
     assert "| `trained` |" in text.split("What the force head costs")[1], text
     assert "| `trained` | single |" in text.split("Where the heads miss")[1], text
     assert (tmp_path / "forces" / "served-against-fem.png").stat().st_size > 10_000
+    # The head is timed against its network exported without it, from its run: another run is refused.
+    (tmp_path / "mixed").mkdir()
+    (tmp_path / "mixed" / "trained").symlink_to(tmp_path / "untrained", target_is_directory=True)
+    example = interaction_input(
+        dataset.mesh, torch.tensor([0, 1]), dataset.mesh.positions[:2], torch.ones(2, 3) * 0.01, False
+    )
+    with pytest.raises(TrainingInputError, match="not the run it came from"):
+        field_only(models / "trained", tmp_path / "mixed", dataset.mesh, example[None].numpy(), tmp_path / "f.onnx")
 
 
 def test_grasp_force_misses_are_grouped_by_the_push_against_the_held_nodes_normal() -> None:

@@ -84,6 +84,9 @@ def main(argv: list[str] | None = None) -> int:
     forces.add_argument("--nak", type=Path, default=DEFAULT_NAK)
     forces.add_argument("--mesh", type=Path, default=DEFAULT_MESH)
     forces.add_argument("--out", type=Path, default=Path("docs/reports/forces"))
+    forces.add_argument(
+        "--runs", type=Path, default=Path("out/runs"), help="the models' runs (the head's cost is timed against them)"
+    )
     forces.add_argument("--prior", default="green-tangent", choices=["green-tangent", "green-linear"])
     missed = commands.add_parser("misses", help="a network's error by how deep the grasps push, sample by sample")
     missed.add_argument("--data", type=Path, required=True, help="a nonlinear dataset (every sample is scored)")
@@ -112,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "forces":
             from .force_report import write_force_report
 
-            written = write_force_report(args.data, args.model, args.nak, args.mesh, args.out, args.prior)
+            written = write_force_report(args.data, args.model, args.nak, args.mesh, args.out, args.runs, args.prior)
             print(f"wrote {written}")
             return 0
         if args.command == "failures":

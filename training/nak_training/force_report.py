@@ -1,9 +1,10 @@
 """Grasp forces against the finite elements, as nak serves them: per model, `nak eval`'s force error on
 the test split per subset; a figure of each served force component against the FEM's; what a force
-head costs a request (the same graph with its `forces` output cut away, both run as nak runs them); and how
+head costs a request (the graph against the same network exported without it, both run as nak runs
+them); and how
 the FEM's force grows with the nodes a grasper holds, which a head must see to learn it.
 
-python -m nak_training forces --data DATA --model pod-base-forces-nl   (writes docs/reports/forces*)
+python -m nak_training forces --data DATA --runs RUNS --model pod-base-forces-nl   (writes docs/reports/forces*)
 """
 
 from __future__ import annotations
@@ -19,17 +20,20 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-import onnx.utils  # noqa: E402
 import onnxruntime  # noqa: E402
 import torch  # noqa: E402
 from safetensors.numpy import load_file  # noqa: E402
 
+from .config import load_config  # noqa: E402
 from .dataset import Dataset, Mesh, Sample, is_failed, open_dataset, read_json  # noqa: E402
 from .errors import TrainingInputError  # noqa: E402
 from .evaluate import read_manifest, refuse_scoring_on_its_training_set  # noqa: E402
-from .reduced import INTERACTION_WIDTH  # noqa: E402
-from .reduced_train import interaction_input  # noqa: E402
+from .export import trace_interaction_graph  # noqa: E402
+from .grasp_served import served_form  # noqa: E402
+from .reduced import INTERACTION_WIDTH, InteractionGraph  # noqa: E402
+from .reduced_train import interaction_input, load_reduced  # noqa: E402
 from .served import Nak  # noqa: E402
+from .static_sizes import RELATIVE_TOLERANCE  # noqa: E402
 
 # The linearization the nonlinear networks' forces build on, scored beside them.
 PRIOR = "green-tangent"
@@ -46,9 +50,11 @@ DEEP_PUSH = 0.05
 DIRECTIONS = ((-1.0, -0.5, "into the organ"), (-0.5, 0.0, "oblique, in"), (0.0, 0.5, "oblique, out"), (0.5, 1.0, "out"))
 
 
-def write_force_report(data: Path, models: list[Path], nak: Path, mesh: Path, out: Path, prior: str = PRIOR) -> Path:
+def write_force_report(
+    data: Path, models: list[Path], nak: Path, mesh: Path, out: Path, runs: Path, prior: str = PRIOR
+) -> Path:
     """Scores `prior` (green-tangent or green-linear) and the model directories `models` (each with a
-    [forces] section) on the test split of `data`; writes `out`.md and the figure
+    [forces] section, its run under `runs`) on the test split of `data`; writes `out`.md and the figure
     `out`/served-against-fem.png."""
     dataset = open_dataset(data)
     test = dataset.load("test").samples
@@ -70,7 +76,7 @@ def write_force_report(data: Path, models: list[Path], nak: Path, mesh: Path, ou
         flags = ["--models", str(root), f"--{prior}"]
         reports = {name: evaluation(served, data, name, flags, Path(tmp)) for name in names}
         forces = {name: served_forces(served, data, name, flags, Path(tmp)) for name in names}
-        costs = {d.name: head_cost(d, dataset.mesh, test[:TIMED_REQUESTS], Path(tmp)) for d in models}
+        costs = {d.name: head_cost(d, runs, dataset.mesh, test[:TIMED_REQUESTS], Path(tmp)) for d in models}
     out.mkdir(parents=True, exist_ok=True)
     figure = out / "served-against-fem.png"
     plot(truth, forces, {s.index: s.subset for s in test}, figure)
@@ -154,11 +160,24 @@ def force_by_count(dataset: Dataset) -> str:
     return "\n".join(lines) + "\n"
 
 
-def without_forces(graph: Path, into: Path) -> None:
-    """The graph at `graph` ending before its `forces` output (onnx.utils.extract_model), written to
-    `into`: the same network without its force head, to time against it."""
-    kept = [o.name for o in onnx.load(str(graph)).graph.output if o.name != "forces"]
-    onnx.utils.extract_model(str(graph), str(into), ["interaction"], kept)
+def field_only(model: Path, runs: Path, mesh: Mesh, example: np.ndarray, into: Path) -> None:
+    """The network of the model directory `model` exported as it is, less its force head, written to `into`:
+    from its run under `runs` (runs are not committed: train it again), checked to give `model`'s field.
+    The served form computes a head's first layer with its encoder's (grasp_served.py), so the same graph
+    with its `forces` output cut away would still compute part of the head."""
+    config = load_config(model / "config.toml")
+    net, basis = load_reduced(runs / config.name, config)
+    net.forces = None  # the network as it would be exported without a head: its field alone
+    folded = config.form == "graph"
+    graph = InteractionGraph(net, basis if folded else None, mesh.positions, folded, served_form(net))
+    trace_interaction_graph(graph, torch.from_numpy(example), into)
+    ours, theirs = (served_session(g).run(None, {"interaction": example})[0] for g in (model / "model.onnx", into))
+    difference = float(np.abs(ours - theirs).max() / max(float(np.abs(theirs).max()), 1e-30))
+    if difference > RELATIVE_TOLERANCE:
+        raise TrainingInputError(
+            runs / config.name,
+            f"its field differs from {model}'s by {difference:.1e} (relative): not the run it came from",
+        )
 
 
 def evaluation(served: Nak, data: Path, model: str, flags: list[str], tmp: Path) -> dict[str, Any]:
@@ -206,17 +225,18 @@ def timing_requests(mesh: Mesh, samples: list[Sample], width: int) -> list[np.nd
     return requests
 
 
-def head_cost(model: Path, mesh: Mesh, samples: list[Sample], tmp: Path) -> dict[str, float]:
-    """The graph's time a request (µs, median) with and without its force head, and the head's: the
-    median of the two's difference request by request. Each request runs through both in turn, the
-    order alternating, TIMING_ROUNDS times after a pass to warm up; the time is the calling thread's
-    CPU time (ONNX Runtime runs a one-thread session on it), which other work on the machine does not
-    stretch as it stretches the wall clock."""
-    cut = tmp / f"{model.name}-no-forces.onnx"
-    without_forces(model / "model.onnx", cut)
-    sessions = (served_session(model / "model.onnx"), served_session(cut))
-    width = sessions[0].get_inputs()[0].shape[-1]
-    requests = timing_requests(mesh, samples, int(width))
+def head_cost(model: Path, runs: Path, mesh: Mesh, samples: list[Sample], tmp: Path) -> dict[str, float]:
+    """The graph's time a request (µs, median) with its force head and without (`field_only`), and the
+    head's: the median of the two's difference request by request. Each request runs through both in
+    turn, the order alternating, TIMING_ROUNDS times after a pass to warm up; the time is the calling
+    thread's CPU time (ONNX Runtime runs a one-thread session on it), which other work on the machine
+    does not stretch as it stretches the wall clock."""
+    graph = model / "model.onnx"
+    width = int(served_session(graph).get_inputs()[0].shape[-1])
+    requests = timing_requests(mesh, samples, width)
+    without = tmp / f"{model.name}-field-only.onnx"
+    field_only(model, runs, mesh, requests[0], without)
+    sessions = (served_session(graph), served_session(without))
     for request in requests:
         for session in sessions:
             session.run(None, {"interaction": request})
@@ -282,13 +302,15 @@ def markdown(data: Path, reports: dict[str, dict[str, Any]], costs: dict[str, di
     lines += ["", f"![Served against FEM force components]({figure})", ""]
     if costs:
         lines += [
-            "What the force head costs a request: the same graph with its `forces` output cut away",
-            "(`onnx.utils.extract_model`), both run by ONNX Runtime as nak runs an interaction graph (one intra-op",
-            f"thread, no spinning, every graph optimization) on the first {TIMED_REQUESTS} test requests or fewer, each through",
-            f"both graphs in turn, the order alternating, {TIMING_ROUNDS} times; the calling thread's CPU time, median over",
-            "requests and rounds; the head's cost is the median of the differences request by request:",
+            "What the force head costs a request: the graph against the same network exported without its head",
+            "(from its run; the served form computes the head's first layer with its encoder's, so cutting the",
+            "`forces` output away would leave part of it), both run by ONNX Runtime as nak runs an interaction",
+            f"graph (one intra-op thread, no spinning, every graph optimization) on the first {TIMED_REQUESTS} test requests",
+            f"or fewer, each through both graphs in turn, the order alternating, {TIMING_ROUNDS} times; the calling thread's",
+            "CPU time, median over requests and rounds; the head's cost is the median of the differences request",
+            "by request:",
             "",
-            "| Model | requests | graph with forces | without | the head |",
+            "| Model | requests | with its head | without | the head |",
             "|---|---:|---:|---:|---:|",
         ]
         for name, c in costs.items():

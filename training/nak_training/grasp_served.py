@@ -1,6 +1,7 @@
-"""The served form of grasp encoders (`reduced.GraspEncoder`, one or an ensemble): the same function of one
-request's interaction points, written as ONNX Runtime answers it fastest. Export writes it; training never
-runs it. Two rewrites, both exact up to float rounding (export checks the graph against the trained
+"""The served form of grasp encoders (`reduced.GraspEncoder`, one or an ensemble) and their force heads:
+the same function of one request's interaction points, written as ONNX Runtime answers it fastest. Export
+writes it; training never runs it. ONNX Runtime's cost per request is mostly per operator, so each rewrite
+takes operators away; all are exact up to float rounding (export checks the graph against the trained
 network):
 
 * **Per grasp.** What a point's B_k and head_k see of the others (its grasp's mean embedding, the other
@@ -10,6 +11,10 @@ network):
   half of a member's multiply-adds per point.
 * **What all members share, once.** The point features, the grasps and what is known of them before
   the first layer are computed once, not once per member.
+* **A force head rides on its member's products.** Its first layer reads what B_k's first layer reads
+  (the point, its grasp's context, the set's summary), so its columns are appended to that layer's
+  (one product for both, then split), and what A_k û_k + c_k needs of û_k and the grasp's size is
+  appended to the columns that give B_k its û_k / size_k.
 
 A request is one set (batch 1, no padding); the grasps are the points that move exactly alike, as the
 encoder itself counts them (`reduced.same_grasp`).
@@ -26,45 +31,63 @@ from .reduced import ForceHead, GraspEncoder, ReducedNet, same_grasp
 
 # The statistics every member must share to be served as one (an ensemble's are set together).
 SHARED_STATISTICS = ("x_mean", "x_std", "u_scale", "r_scale")
+# What a force head's last layer gives each point: A_k row-major (9), then c_k (3).
+FORCE_OUTPUTS = 12
 
 
 class Part(nn.Module):
-    """The columns `columns` of a Linear layer's input, as a 2-D constant (ONNX Runtime packs those once,
-    at load, for its GEMM), with or without the layer's bias."""
+    """x @ W.T (+ bias) for W [out, in] some columns of Linear layers' weights, kept as a 2-D constant
+    [in, out] (ONNX Runtime packs those once, at load, for its GEMM)."""
 
     weight: torch.Tensor
     bias: torch.Tensor | None
 
-    def __init__(self, layer: nn.Linear, columns: slice = slice(None), bias: bool = True) -> None:
+    def __init__(self, weight: torch.Tensor, bias: torch.Tensor | None = None) -> None:
         super().__init__()
-        self.register_buffer("weight", layer.weight[:, columns].T.detach().clone())
-        self.register_buffer("bias", layer.bias.detach().clone() if bias else None)
+        self.register_buffer("weight", weight.T.detach().clone())
+        self.register_buffer("bias", None if bias is None else bias.detach().clone())
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return x @ self.weight if self.bias is None else x @ self.weight + self.bias
 
 
 class ServedMember(nn.Module):
-    """One grasp encoder's layers, its first layers of `matrices` and `head` split by what they read."""
+    """One grasp encoder's layers, its first layers of `matrices` and `head` split by what they read; with
+    a force head, the head's first layer appended to that of `matrices` (its outputs after `width`)."""
 
-    def __init__(self, member: GraspEncoder) -> None:
+    def __init__(self, member: GraspEncoder, force: ForceHead | None, force_context: int, reads_field: bool) -> None:
+        """`force_context`: how many values of each grasp's context the force head reads after a point's
+        features (0: none); `reads_field`: it reads the member's coefficients last."""
         super().__init__()
-        features = member.point_features
-        context = member.context_features
+        features, context = member.point_features, member.context_features
         self.embed = member.embed
         matrices, head = cast(nn.Linear, member.matrices[0]), cast(nn.Linear, member.head[0])
-        self.matrices_points = Part(matrices, slice(0, features), bias=False)
-        self.matrices_context = Part(matrices, slice(features, features + context), bias=False)
-        self.matrices_summary = Part(matrices, slice(features + context, None))
+        self.width = matrices.out_features
+        self.force_width = 0 if force is None else force.first.out_features
+        blocks = [matrices.weight[:, :features], matrices.weight[:, features : features + context]]
+        blocks.append(matrices.weight[:, features + context :])
+        bias: torch.Tensor = matrices.bias
+        self.force_field: Part | None = None
+        if force is not None:
+            w = force.first.weight
+            summary = blocks[2].shape[1]
+            set_start = features + force_context
+            reads = [w[:, :features], w[:, features:set_start] if force_context else w.new_zeros(len(w), context)]
+            reads.append(w[:, set_start : set_start + summary])
+            blocks = [torch.cat(pair) for pair in zip(blocks, reads, strict=True)]
+            bias = torch.cat([bias, force.first.bias])
+            self.force_field = Part(w[:, set_start + summary :]) if reads_field else None
+        self.matrices_points, self.matrices_context = Part(blocks[0]), Part(blocks[1])
+        self.matrices_summary = Part(blocks[2], bias)
         self.matrices_rest = member.matrices[1:]
-        self.head_context = Part(head, slice(0, context), bias=False)
-        self.head_summary = Part(head, slice(context, None))
+        self.head_context = Part(head.weight[:, :context])
+        self.head_summary = Part(head.weight[:, context:], head.bias)
         self.head_rest = member.head[1:]
 
 
 class ServedGraspEncoders(nn.Module):
-    """interaction [1, K, 6] (or [1, K, 10] with surface geometry) → the members' g, the point features and
-    each member's summary."""
+    """interaction [1, K, 6] (or [1, K, 10] with surface geometry) → the members' g and, with force heads,
+    what each head's first layer gives and what its A_k û_k + c_k reads of the point."""
 
     shift: torch.Tensor
     scale: torch.Tensor
@@ -72,9 +95,13 @@ class ServedGraspEncoders(nn.Module):
     r_scale: torch.Tensor
     g_scale: torch.Tensor
     tile: torch.Tensor
+    tile_bias: torch.Tensor | None
     triples: torch.Tensor
 
-    def __init__(self, members: list[GraspEncoder]) -> None:
+    def __init__(
+        self, members: list[GraspEncoder], heads: list[ForceHead], force_context: int = 0, reads_field: bool = False
+    ) -> None:
+        """`heads`: none, or one force head a member (see `ServedMember` for the rest)."""
         super().__init__()
         first = members[0]
         for name in SHARED_STATISTICS:
@@ -91,17 +118,25 @@ class ServedGraspEncoders(nn.Module):
         self.register_buffer("x_std", first.x_std.clone())
         self.register_buffer("r_scale", first.r_scale.clone())
         self.register_buffer("g_scale", torch.stack([m.g_scale for m in members]).clone())  # [E, M]
-        # û repeated per mode ([3, 3M]) and the sum of each mode's three products ([3M, M]): B_k is mode-major.
-        self.register_buffer("tile", torch.eye(3).repeat(1, modes))
+        # The normalized input's û (columns 3–5) repeated per mode (B_k is mode-major) and, with force heads,
+        # three times more then three ones (A_k row-major, then c_k): over the grasp's size, [K, 3M (+ 12)].
+        self.modes = modes
+        repeats = modes + (3 if heads else 0)
+        tile = torch.zeros(len(shift), 3 * repeats + (3 if heads else 0))
+        tile[3:6, : 3 * repeats] = torch.eye(3).repeat(1, repeats)
+        self.register_buffer("tile", tile)
+        self.register_buffer("tile_bias", torch.cat([torch.zeros(3 * repeats), torch.ones(3)]) if heads else None)
+        # The sum of each mode's three products: [3M, M].
         self.register_buffer("triples", torch.eye(modes).repeat_interleave(3, dim=0))
-        self.members = nn.ModuleList(ServedMember(m) for m in members)
+        members_heads = heads if heads else [None] * len(members)
+        self.members = nn.ModuleList(
+            ServedMember(m, h, force_context, reads_field) for m, h in zip(members, members_heads, strict=True)
+        )
 
-    def forward(
-        self, interaction: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, list[torch.Tensor], list[torch.Tensor], torch.Tensor]:
-        """Each member's g [E, M] unscaled (g / g_scale), the point features [K, F], each point's grasp
-        size [K, 1] and each member's summary [1, 2W], as `GraspEncoder.encode` gives them per member;
-        then each member's context per grasp [G, 2W + 3] and which grasp each point is in [K, G]."""
+    def forward(self, interaction: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor], torch.Tensor | None]:
+        """Each member's g [E, M] unscaled (g / g_scale), as `GraspEncoder.encode` gives it; with force
+        heads, what each head's first layer gives each point [K, H] (before the head's own input of the
+        field) and [û û û 1 1 1] / size [K, 12], else an empty list and None."""
         x = interaction[0, :, :3]
         f = (interaction[0] - self.shift) / self.scale
         alike = same_grasp(f[None])[0]
@@ -117,8 +152,12 @@ class ServedGraspEncoders(nn.Module):
         others_count = others.sum(-1, keepdim=True)
         count = others_count.clamp_min(1.0)
         apart = ((others @ x) / count - centroid[rows]) / self.x_std * (others_count > 0).to(x.dtype)
-        shares = (f[:, 3:6] @ self.tile) / size  # [K, 3M]: û_k per mode over its grasp's size
-        gs, summaries, contexts = [], [], []
+        shares, force_shares = (f @ self.tile) / size, None
+        if self.tile_bias is not None:
+            shares, force_shares = ((f @ self.tile + self.tile_bias) / size).split(
+                [3 * self.modes, FORCE_OUTPUTS], dim=-1
+            )
+        gs, force_firsts = [], []
         for member in self.members:
             assert isinstance(member, ServedMember)
             e = member.embed(features)  # [K, W]
@@ -130,94 +169,63 @@ class ServedGraspEncoders(nn.Module):
                 + member_of @ member.matrices_context(context)
                 + member.matrices_summary(summary)
             )
+            if member.force_width:
+                first, force_first = first.split([member.width, member.force_width], dim=-1)
+                force_firsts.append(force_first)
             b = member.matrices_rest(first)  # [K, 3M]
             gs.append((b * shares).sum(0, keepdim=True) @ self.triples + head.sum(0, keepdim=True))
-            summaries.append(summary)
-            contexts.append(context)
-        return torch.cat(gs), features, size, summaries, contexts, member_of
+        return torch.cat(gs), force_firsts, force_shares
 
 
 class ServedForceHead(nn.Module):
-    """A force head (`reduced.ForceHead`) over one request's points as 2-D tensors, its first layer split
-    into the points' part and the set's: [K, F] points, [K, 1] grasp sizes, [1, S] set → [K, 3].
+    """A force head (`reduced.ForceHead`) after its first layer (computed with its member's, see
+    `ServedMember`): [K, H] → its last layer [K, 12], A_k row-major then c_k, f_scale folded in."""
 
-    Its last layer gives A_k row-major and c_k together; A_k û_k + c_k is taken as one product,
-    (out ⊙ [û û û 1 1 1]) @ [row sums; I₃], with f_scale folded into that layer: ONNX Runtime's cost per
-    request is mostly per operator, and this takes four fewer than slicing A and c apart."""
-
-    pick: torch.Tensor
-    ones: torch.Tensor
-    sums: torch.Tensor
     last_weight: torch.Tensor
     last_bias: torch.Tensor
 
-    def __init__(self, head: ForceHead, features: int, context: int = 0) -> None:
-        """`features`: how many point features the head's encoder gives (the first layer's first columns);
-        `context`: how many values of each grasp's context it reads after them (0: none), computed once
-        per grasp."""
+    def __init__(self, head: ForceHead) -> None:
         super().__init__()
-        self.points = Part(head.first, slice(0, features), bias=False)
-        self.context = Part(head.first, slice(features, features + context), bias=False) if context else None
-        self.set = Part(head.first, slice(features + context, None))
         self.hidden = head.rest[:-1]
         last = cast(nn.Linear, head.rest[-1])
         self.register_buffer("last_weight", (last.weight.T * head.f_scale).detach().clone())  # [H, 12]
         self.register_buffer("last_bias", (last.bias * head.f_scale).detach().clone())
-        # The point's û (its features' columns 3–5) three times, then three zeros to which `ones` adds 1.
-        pick = torch.zeros(features, 12)
-        pick[3:6, :9] = torch.eye(3).repeat(1, 3)
-        self.register_buffer("pick", pick)
-        self.register_buffer("ones", torch.cat([torch.zeros(9), torch.ones(3)]))
-        # The sum of each row of A (as ForceHead takes A û), then c as it is: [12, 3].
-        self.register_buffer("sums", torch.cat([head.row_sums, torch.eye(3)]))
 
-    def forward(
-        self,
-        points: torch.Tensor,
-        seen: torch.Tensor,
-        size: torch.Tensor,
-        context: torch.Tensor | None = None,
-        member_of: torch.Tensor | None = None,
-    ) -> torch.Tensor:
-        first = self.points(points) + self.set(seen)
-        if self.context is not None:
-            if context is None or member_of is None:
-                raise ValueError("this force head reads the grasps: give it their context and each point's grasp")
-            first = first + member_of @ self.context(context)
-        out = self.hidden(first) @ self.last_weight + self.last_bias  # [K, 12]: A row-major, then c
-        return ((out * (points @ self.pick + self.ones)) @ self.sums) / size
+    def forward(self, first: torch.Tensor) -> torch.Tensor:
+        return self.hidden(first) @ self.last_weight + self.last_bias
 
 
 class ServedGraspNet(nn.Module):
     """A grasp-encoder network as served: interaction [1, K, 6 or 10] → g [1, M] and, with force heads, the
     force on each point [1, K, 3] (the members' means, as `ReducedNet.encode` gives them)."""
 
+    sums: torch.Tensor
+
     def __init__(self, net: ReducedNet) -> None:
         super().__init__()
         members = served_members(net)
-        self.encoders = ServedGraspEncoders(members)
-        member = members[0]
-        context = member.context_features if net.force_reads_grasps else 0
-        self.heads = nn.ModuleList(ServedForceHead(head, member.point_features, context) for head in net.force_heads)
-        self.reads_field = net.force_reads_field
+        context = members[0].context_features if net.force_reads_grasps else 0
+        self.encoders = ServedGraspEncoders(members, net.force_heads, context, net.force_reads_field)
+        self.heads = nn.ModuleList(ServedForceHead(head) for head in net.force_heads)
+        # The sum of each row of A (as ForceHead takes A û), then c as it is: [1, 12, 3], so that the
+        # product is the output's [1, K, 3] itself.
+        rows = net.force_heads[0].row_sums if net.force_heads else torch.zeros(9, 3)
+        self.register_buffer("sums", torch.cat([rows, torch.eye(3)])[None])
 
     def forward(self, interaction: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-        g, features, size, summaries, contexts, member_of = self.encoders(interaction)
+        g, force_firsts, force_shares = self.encoders(interaction)
         field = (g * self.encoders.g_scale).mean(0, keepdim=True)
-        if len(self.heads) == 0:
+        if force_shares is None:
             return field, None
-        forces = [
-            head(
-                features,
-                torch.cat([summary, g[i : i + 1]], dim=-1) if self.reads_field else summary,
-                size,
-                contexts[i],
-                member_of,
-            )
-            for i, (head, summary) in enumerate(zip(self.heads, summaries, strict=True))
-        ]
-        # One head's forces as they are: a mean of one costs ONNX Runtime three operators a request.
-        return field, (forces[0] if len(forces) == 1 else torch.stack(forces).mean(0))[None]
+        outs = []
+        for i, (head, first) in enumerate(zip(self.heads, force_firsts, strict=True)):
+            member = cast(ServedMember, self.encoders.members[i])
+            if member.force_field is not None:
+                first = first + member.force_field(g[i : i + 1])
+            outs.append(head(first))
+        # The members' mean before the product, which is linear in it: one head's output as it is.
+        out = outs[0] if len(outs) == 1 else torch.stack(outs).mean(0)
+        return field, (out * force_shares) @ self.sums
 
 
 def served_members(net: ReducedNet) -> list[GraspEncoder]:
