@@ -38,9 +38,10 @@ from .static_sizes import RELATIVE_TOLERANCE  # noqa: E402
 # The linearization the nonlinear networks' forces build on, scored beside them.
 PRIOR = "green-tangent"
 SUBSETS = ("single", "multi", "combined")
-# Each timed request runs through both graphs, in turn, this many times; a head's cost is the median of
-# the differences request by request, which the machine's drift between runs cannot reach.
-TIMING_ROUNDS = 5
+# Each timed request runs through both graphs, in turn, this many times (even: each graph's session is
+# opened first in half of them); a head's cost is the median of the differences request by request,
+# which the machine's drift between runs cannot reach.
+TIMING_ROUNDS = 6
 TIMED_REQUESTS = 400
 # Single-grasper pushes deeper than this (metres) are grouped by held-node count: shallow pushes would
 # mix the count's effect with the depth's.
@@ -227,32 +228,43 @@ def timing_requests(mesh: Mesh, samples: list[Sample], width: int) -> list[np.nd
 
 def head_cost(model: Path, runs: Path, mesh: Mesh, samples: list[Sample], tmp: Path) -> dict[str, float]:
     """The graph's time a request (µs, median) with its force head and without (`field_only`), and the
-    head's: the median of the two's difference request by request. Each request runs through both in
-    turn, the order alternating, TIMING_ROUNDS times after a pass to warm up; the time is the calling
-    thread's CPU time (ONNX Runtime runs a one-thread session on it), which other work on the machine
-    does not stretch as it stretches the wall clock."""
+    head's: the median of the two's difference request by request (`paired_times`)."""
     graph = model / "model.onnx"
     width = int(served_session(graph).get_inputs()[0].shape[-1])
     requests = timing_requests(mesh, samples, width)
     without = tmp / f"{model.name}-field-only.onnx"
     field_only(model, runs, mesh, requests[0], without)
-    sessions = (served_session(graph), served_session(without))
-    for request in requests:
-        for session in sessions:
-            session.run(None, {"interaction": request})
-    times = np.zeros((2, TIMING_ROUNDS, len(requests)))
-    for r in range(TIMING_ROUNDS):
-        for i, request in enumerate(requests):
-            for which in (0, 1) if (r + i) % 2 == 0 else (1, 0):
-                start = time.thread_time_ns()
-                sessions[which].run(None, {"interaction": request})
-                times[which, r, i] = (time.thread_time_ns() - start) / 1e3
+    times = paired_times((graph, without), requests)
     return {
         "with": float(np.median(times[0])),
         "without": float(np.median(times[1])),
         "head": float(np.median(times[0] - times[1])),
         "requests": len(requests),
     }
+
+
+def paired_times(graphs: tuple[Path, Path], requests: list[np.ndarray]) -> np.ndarray:
+    """[2, TIMING_ROUNDS, requests] µs: each request through both graphs in turn, the order alternating,
+    in TIMING_ROUNDS rounds; each round opens both sessions anew, the one opened first alternating too
+    (which session was opened first moved the difference between two copies of one graph by 4–5 µs,
+    as much as half a head), and runs every request through both once before it is timed. The time
+    is the calling thread's CPU time (ONNX Runtime runs a one-thread session on it), which other work
+    on the machine does not stretch as it stretches the wall clock."""
+    times = np.zeros((2, TIMING_ROUNDS, len(requests)))
+    for r in range(TIMING_ROUNDS):
+        order = (0, 1) if r % 2 == 0 else (1, 0)
+        opened = {which: served_session(graphs[which]) for which in order}
+        sessions = (opened[0], opened[1])
+        for request in requests:
+            for session in sessions:
+                session.run(None, {"interaction": request})
+        for i, request in enumerate(requests):
+            for which in order if i % 2 == 0 else order[::-1]:
+                start = time.thread_time_ns()
+                sessions[which].run(None, {"interaction": request})
+                times[which, r, i] = (time.thread_time_ns() - start) / 1e3
+        del sessions, opened  # closed before the next round opens its own, in the same memory
+    return times
 
 
 def plot(
@@ -306,9 +318,10 @@ def markdown(data: Path, reports: dict[str, dict[str, Any]], costs: dict[str, di
             "(from its run; the served form computes the head's first layer with its encoder's, so cutting the",
             "`forces` output away would leave part of it), both run by ONNX Runtime as nak runs an interaction",
             f"graph (one intra-op thread, no spinning, every graph optimization) on the first {TIMED_REQUESTS} test requests",
-            f"or fewer, each through both graphs in turn, the order alternating, {TIMING_ROUNDS} times; the calling thread's",
-            "CPU time, median over requests and rounds; the head's cost is the median of the differences request",
-            "by request:",
+            f"or fewer, each through both graphs in turn, the order alternating, in {TIMING_ROUNDS} rounds, each opening both",
+            "sessions anew, first the one and then the other in turn (the session opened first ran slower); the",
+            "calling thread's CPU time, median over requests and rounds; the head's cost is the median of the",
+            "differences request by request:",
             "",
             "| Model | requests | with its head | without | the head |",
             "|---|---:|---:|---:|---:|",
