@@ -144,6 +144,35 @@ fn vertex_normals_are_unit_on_the_surface_and_zero_inside() {
 }
 
 #[test]
+fn a_box_is_as_deep_beneath_each_face_as_it_is_across() {
+    // Nodes inside a face of the 0.10 × 0.06 × 0.04 m box have that face's normal; the ray inward
+    // crosses the box to the opposite face. Edge and corner nodes (averaged normals) cross it slanted.
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures");
+    let m = mesh::load(&MeshSource::File(dir.join("box.msh"))).unwrap();
+    let depths = m.inward_depths();
+    let extent = [0.10, 0.06, 0.04];
+    let mut checked = [0; 3];
+    for &n in &m.surface_nodes {
+        let normal = m.normals[n as usize];
+        if let Some(axis) = (0..3).find(|&k| (normal[k].abs() - 1.0).abs() < 1e-12) {
+            let depth = depths[n as usize];
+            assert!(
+                (depth - extent[axis]).abs() < 1e-12,
+                "node {n}: {depth} m across axis {axis}"
+            );
+            checked[axis] += 1;
+        } else {
+            assert!(depths[n as usize] > 0.0, "node {n} on an edge: no depth");
+        }
+    }
+    assert!(checked.iter().all(|&c| c > 0), "face nodes per axis {checked:?}");
+    assert!(
+        m.is_surface.iter().zip(&depths).all(|(&s, &d)| s || d == 0.0),
+        "depth inside"
+    );
+}
+
+#[test]
 fn binary_and_ascii_files_give_the_same_mesh() {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures");
     let ascii = mesh::load(&MeshSource::File(dir.join("box.msh"))).unwrap();

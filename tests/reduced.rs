@@ -104,13 +104,14 @@ fn refuses_a_wrong_interaction_input_or_basis() {
     let faulty = test_models().join("faulty");
     let err = load_error(&faulty.join("interaction-wrong-width/interaction-wrong-width"));
     assert!(
-        err.contains("\"interaction\" has 5 values a point") && err.contains("6 (position, displacement) or 10"),
+        err.contains("\"interaction\" has 5 values a point")
+            && err.contains("6 (position, displacement), 10 (then normal, nodal volume) or 11"),
         "{err}"
     );
-    // A symbolic width would leave nak to guess which of the two the graph reads.
+    // A symbolic width would leave nak to guess which of the three the graph reads.
     let err = load_error(&faulty.join("interaction-symbolic-width/interaction-symbolic-width"));
     assert!(
-        err.contains("\"interaction\" has a symbolic number of values a point") && err.contains("or 10"),
+        err.contains("\"interaction\" has a symbolic number of values a point") && err.contains("or 11"),
         "{err}"
     );
     let err = load_error(&faulty.join("basis-wrong-size/basis-wrong-size"));

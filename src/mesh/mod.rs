@@ -9,6 +9,7 @@
 //! (Gmsh's own order), whatever their Gmsh tags.
 
 mod config;
+mod depth;
 pub mod msh;
 pub mod quality;
 mod refine;
@@ -137,6 +138,12 @@ const DEGENERATE_FRACTION: f64 = 1e-9;
 impl TetMesh {
     pub fn node_count(&self) -> usize {
         self.positions.len()
+    }
+
+    /// Per node, how much organ lies beneath it (m): the distance along its inward normal to where
+    /// that ray leaves the organ; zero inside. Computed on each call (a fraction of a second).
+    pub fn inward_depths(&self) -> Vec<f64> {
+        depth::inward_depths(&self.surface, &self.positions, &self.normals, &self.surface_nodes)
     }
 
     /// Whether `node` is in the `fixed` set (held by the fixture: zero displacement).

@@ -81,8 +81,8 @@ pub struct OnnxModel {
     session: Mutex<Session>,
     /// The features form's input with positions already written, to copy when the pool is empty.
     template: Vec<f32>,
-    /// Each node's outward unit normal and lumped volume, for interaction graphs that read them.
-    geometry: Option<Vec<[f32; 4]>>,
+    /// Each node's surface geometry, for interaction graphs that read it.
+    geometry: Option<NodeGeometry>,
     pool: Mutex<Vec<Buffers>>,
 }
 
@@ -252,7 +252,7 @@ impl OnnxModel {
             all_nodes: NodeCloud::new(mesh.positions.iter().copied()),
             session: Mutex::new(session),
             template,
-            geometry: signature.geometry.then(|| node_geometry(mesh)),
+            geometry: signature.geometry.then(|| NodeGeometry::new(mesh, signature.depth)),
             pool: Mutex::new(Vec::new()),
         };
         model
@@ -272,7 +272,7 @@ impl OnnxModel {
                 let mut points = InteractionPoints::default();
                 let node = mesh.surface_nodes.first().copied().unwrap_or(0);
                 points.push(node, mesh.positions[node as usize], [0.0, 0.0, 0.001]);
-                fill_interaction(&points, self.geometry.as_deref(), &mut buffers.input);
+                fill_interaction(&points, self.geometry.as_ref(), &mut buffers.input);
                 self.run_network(&buffers.input, 1, |_, _| Ok(()))
             }
         };
@@ -440,26 +440,43 @@ struct Encoded<'a> {
 }
 
 /// Writes each interaction point's rest position and prescribed displacement, [K, 6] row-major, and
-/// with a `geometry` table (one row per node) the point's row of it after them, [K, 10].
-fn fill_interaction(points: &InteractionPoints, geometry: Option<&[[f32; 4]]>, input: &mut Vec<f32>) {
+/// with a `geometry` table the point's row of it after them, [K, 10] or [K, 11].
+fn fill_interaction(points: &InteractionPoints, geometry: Option<&NodeGeometry>, input: &mut Vec<f32>) {
     input.clear();
     for ((p, u), &node) in points.positions.iter().zip(&points.displacements).zip(&points.nodes) {
         input.extend(p.iter().chain(u).map(|&v| v as f32));
         if let Some(geometry) = geometry {
-            // Nodes were checked against the mesh when the request was resolved.
-            debug_assert!((node as usize) < geometry.len(), "node {node} outside the mesh");
-            input.extend(geometry.get(node as usize).copied().unwrap_or_default());
+            input.extend_from_slice(geometry.row(node));
         }
     }
 }
 
-/// Each node's outward unit normal (zero inside) and lumped volume, as the graph reads them.
-fn node_geometry(mesh: &TetMesh) -> Vec<[f32; 4]> {
-    mesh.normals
-        .iter()
-        .zip(&mesh.nodal_volumes)
-        .map(|(n, &v)| [n[0] as f32, n[1] as f32, n[2] as f32, v as f32])
-        .collect()
+/// Each node's surface geometry as an interaction graph reads it after the point's position and
+/// displacement: its outward unit normal (zero inside) and lumped volume, then, for a graph that reads
+/// it, the organ's depth beneath it (`TetMesh::inward_depths`).
+struct NodeGeometry {
+    values: Vec<f32>,
+    width: usize,
+}
+
+impl NodeGeometry {
+    fn new(mesh: &TetMesh, depth: bool) -> Self {
+        let depths = if depth { mesh.inward_depths() } else { Vec::new() };
+        let width = if depth { 5 } else { 4 };
+        let mut values = Vec::with_capacity(width * mesh.node_count());
+        for (node, (n, &v)) in mesh.normals.iter().zip(&mesh.nodal_volumes).enumerate() {
+            values.extend([n[0] as f32, n[1] as f32, n[2] as f32, v as f32]);
+            values.extend(depths.get(node).map(|&d| d as f32));
+        }
+        Self { values, width }
+    }
+
+    /// Node `node`'s row; nodes were checked against the mesh when the request was resolved.
+    fn row(&self, node: u32) -> &[f32] {
+        let start = node as usize * self.width;
+        debug_assert!(start + self.width <= self.values.len(), "node {node} outside the mesh");
+        self.values.get(start..start + self.width).unwrap_or_default()
+    }
 }
 
 /// Copies (or adds, with `add`) the rows of `target`'s nodes from a whole-mesh field [N, 3] into `out`.
@@ -704,7 +721,7 @@ impl OnnxModel {
         elapsed_us: &mut f32,
     ) -> Result<(), ModelError> {
         let start = Instant::now();
-        fill_interaction(points, self.geometry.as_deref(), input);
+        fill_interaction(points, self.geometry.as_ref(), input);
         let result = self.run_network(input, points.len(), |values, forces| {
             into.output.clear();
             into.output.extend_from_slice(values);

@@ -16,12 +16,15 @@ pub const FORCES: &str = "forces";
 pub const INTERACTION_WIDTH: usize = 6;
 /// The same, then the point's surface geometry: outward unit normal (3) and lumped nodal volume (1, m³).
 pub const INTERACTION_GEOMETRY_WIDTH: usize = 10;
+/// The same, then how much organ lies beneath the point along its inward normal (1, m).
+pub const INTERACTION_DEPTH_WIDTH: usize = 11;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Input {
     /// `features` f32 [B, N, C]: every node's channels.
     Features,
-    /// `interaction` f32 [B, K, 6 or 10]: only the K interaction points (10: with their surface geometry).
+    /// `interaction` f32 [B, K, 6, 10 or 11]: only the K interaction points (10: with their surface
+    /// geometry; 11: and the organ's depth beneath them).
     Interaction,
 }
 
@@ -51,36 +54,39 @@ pub struct Signature {
     pub forces: bool,
     /// Whether the `interaction` input also carries each point's surface geometry ([B, K, 10]).
     pub geometry: bool,
+    /// Whether it carries the organ's depth beneath each point after that ([B, K, 11]).
+    pub depth: bool,
 }
 
 impl Signature {
     /// Values per interaction point the graph reads.
     pub fn interaction_width(&self) -> usize {
-        if self.geometry {
-            INTERACTION_GEOMETRY_WIDTH
-        } else {
-            INTERACTION_WIDTH
+        match (self.geometry, self.depth) {
+            (_, true) => INTERACTION_DEPTH_WIDTH,
+            (true, false) => INTERACTION_GEOMETRY_WIDTH,
+            (false, false) => INTERACTION_WIDTH,
         }
     }
 }
 
 /// Reads `session`'s signature: one input (`features` [B, N, channels] or `interaction` [B, K, 6], or
-/// [B, K, 10] with each point's surface geometry) and one output (`displacement` [B, N, 3], or
+/// [B, K, 10] with each point's surface geometry, or [B, K, 11] with the organ's depth beneath it too) and one output (`displacement` [B, N, 3], or
 /// `coefficients` [B, M] after `interaction`), f32, with B either 1 or symbolic; an interaction graph
 /// may add `forces` [B, K, 3].
 pub fn read(session: &Session, channels: usize, n: usize, origin: &str) -> Result<Signature, ModelLoadError> {
     let inputs: Vec<&Outlet> = session.inputs().iter().collect();
     let input = single(&inputs, "input", [FEATURES, INTERACTION], origin)?;
-    let (input, geometry) = match input.name() {
+    let (input, geometry, depth) = match input.name() {
         FEATURES => {
             check_shape(input, "input", &[Some(n), Some(channels)], "[batch, N, C]", origin)?;
-            (Input::Features, false)
+            (Input::Features, false, false)
         }
         _ => {
-            let shape = check_shape(input, "input", &[None, None], "[batch, K, 6 or 10]", origin)?;
-            let geometry = match usize::try_from(shape[2]) {
-                Ok(INTERACTION_WIDTH) => false,
-                Ok(INTERACTION_GEOMETRY_WIDTH) => true,
+            let shape = check_shape(input, "input", &[None, None], "[batch, K, 6, 10 or 11]", origin)?;
+            let (geometry, depth) = match usize::try_from(shape[2]) {
+                Ok(INTERACTION_WIDTH) => (false, false),
+                Ok(INTERACTION_GEOMETRY_WIDTH) => (true, false),
+                Ok(INTERACTION_DEPTH_WIDTH) => (true, true),
                 _ => {
                     // A symbolic width would leave nak to guess what the graph reads.
                     let width = if shape[2] < 0 {
@@ -92,7 +98,8 @@ pub fn read(session: &Session, channels: usize, n: usize, origin: &str) -> Resul
                         origin,
                         format!(
                             "{INTERACTION:?} has {width} values a point; the contract gives {INTERACTION_WIDTH} \
-                             (position, displacement) or {INTERACTION_GEOMETRY_WIDTH} (then normal, nodal volume)"
+                             (position, displacement), {INTERACTION_GEOMETRY_WIDTH} (then normal, nodal volume) \
+                             or {INTERACTION_DEPTH_WIDTH} (then the organ's depth beneath it)"
                         ),
                     ));
                 }
@@ -106,7 +113,7 @@ pub fn read(session: &Session, channels: usize, n: usize, origin: &str) -> Resul
                     ),
                 ));
             }
-            (Input::Interaction, geometry)
+            (Input::Interaction, geometry, depth)
         }
     };
     let (main, forces): (Vec<&Outlet>, Vec<&Outlet>) = session.outputs().iter().partition(|o| o.name() != FORCES);
@@ -156,6 +163,7 @@ pub fn read(session: &Session, channels: usize, n: usize, origin: &str) -> Resul
         output,
         forces,
         geometry,
+        depth,
     })
 }
 

@@ -145,6 +145,8 @@ def test_bad_input_is_refused_naming_the_file_or_key(coarse_data: Path, tmp_path
         parse_config(tiny_config(architecture="pod", forces=True, force_reads_grasps=True), "x.toml")
     with pytest.raises(TrainingInputError, match=r'interaction_geometry = true needs .* encoder = "grasps"'):
         parse_config(tiny_config(architecture="pod", interaction_geometry=True), "x.toml")
+    with pytest.raises(TrainingInputError, match="interaction_depth = true needs interaction_geometry = true"):
+        parse_config(tiny_config(architecture="pod", encoder="grasps", interaction_depth=True), "x.toml")
     # The network refuses them too, built from code rather than a configuration.
     with pytest.raises(ValueError, match="force_reads_grasps needs a force head"):
         ReducedNet("pod", 8, 32, "grasps", force_reads_grasps=True)
@@ -558,6 +560,14 @@ def reduced(coarse_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path
         dict(name="pod-served-loss", encoder="grasps", members=2, held_nodes_in_loss=False, **pod),
         dict(name="pod-reg-geometry", method="reg", encoder="grasps", interaction_geometry=True, **pod),
         dict(
+            name="pod-reg-depth",
+            method="reg",
+            encoder="grasps",
+            interaction_geometry=True,
+            interaction_depth=True,
+            **pod,
+        ),
+        dict(
             name="deeponet-reg",
             architecture="deeponet",
             method="reg",
@@ -602,6 +612,7 @@ def test_reduced_networks_are_served_as_their_graph_and_basis_compute_them(
                 "pod-ensemble",
                 "pod-grasps",
                 "pod-reg-geometry",
+                "pod-reg-depth",
                 "deeponet-reg",
             )
         }
@@ -615,9 +626,13 @@ def test_reduced_networks_are_served_as_their_graph_and_basis_compute_them(
     prior_field = prior.evaluate(positions, points, u, mask)[0].numpy().reshape(-1)
 
     nodes = torch.from_numpy(sample.nodes)
-    with_geometry = interaction_input(
-        dataset.mesh, nodes, positions[nodes], torch.from_numpy(sample.displacements), geometry=True
-    )[None].numpy()
+    with_geometry, with_depth = (
+        interaction_input(
+            dataset.mesh, nodes, positions[nodes], torch.from_numpy(sample.displacements), geometry=True, depth=depth
+        )[None].numpy()
+        for depth in (False, True)
+    )
+    assert with_depth.shape[-1] == 11 and (with_depth[0, :, -1] > 0).all()  # held nodes lie on the surface
 
     def expected(name: str, inputs: np.ndarray = interaction, prior: bool = True) -> np.ndarray:
         """The graph's coefficients (onnxruntime) times the basis file, plus the prior for a residual;
@@ -638,6 +653,8 @@ def test_reduced_networks_are_served_as_their_graph_and_basis_compute_them(
     assert relative(served["pod-ensemble"], expected("pod-ensemble")) < 1e-5
     assert relative(served["pod-grasps"], expected("pod-grasps")) < 1e-5
     assert relative(served["pod-reg-geometry"], expected("pod-reg-geometry", with_geometry, prior=False)) < 1e-5
+    # nak computes the organ's depth beneath each held node as training does (src/mesh/depth.rs).
+    assert relative(served["pod-reg-depth"], expected("pod-reg-depth", with_depth, prior=False)) < 1e-5
     assert np.isfinite(served["deeponet-reg"]).all()
 
 

@@ -89,6 +89,10 @@ class TrainConfig:
     # (docs/design.md §7): whether a grasp pushes into the surface or pulls it out, and how much of the
     # organ each held node stands for.
     interaction_geometry: bool = False
+    # With the surface geometry, how much organ lies beneath each held node along its inward normal (m):
+    # a push into thin tissue meets the far surface sooner and is answered stiffer. The network could
+    # learn it from positions; given, the val field gained 0.45 points over two seeds (docs/training.md).
+    interaction_depth: bool = False
     # POD networks: whether the loss scores the network's field at the nodes the grasps hold too. nak
     # answers those with their prescribed displacement whatever the network gives (docs/design.md §7),
     # so false trains on the served field's error alone and spends none of the basis there.
@@ -183,6 +187,10 @@ def parse_config(values: dict[str, Any], origin: str) -> TrainConfig:
     if config.interaction_geometry and not (config.reduced and config.encoder == "grasps"):
         raise TrainingInputError(
             origin, 'interaction_geometry = true needs a reduced architecture with encoder = "grasps"'
+        )
+    if config.interaction_depth and not config.interaction_geometry:
+        raise TrainingInputError(
+            origin, "interaction_depth = true needs interaction_geometry = true: it reads after it"
         )
     if config.force_reads_grasps and not (config.forces and config.encoder == "grasps"):
         raise TrainingInputError(origin, 'force_reads_grasps = true needs forces = true and encoder = "grasps"')

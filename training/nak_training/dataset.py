@@ -10,6 +10,7 @@ skipped, as `nak eval` does; a chunk whose tensor does not match its JSON is ref
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,6 +22,7 @@ from safetensors import SafetensorError
 from safetensors.numpy import load_file
 
 from .errors import TrainingInputError
+from .surface_depth import inward_depths
 
 SUBSETS = ("single", "multi")
 SPLITS = ("train", "val", "test")
@@ -44,14 +46,28 @@ class Mesh:
     neighbours: tuple[int, int]  # grasp neighbour count range of the sampling distribution
     tets: torch.Tensor | None = None  # i64 [T, 4]; None in datasets made before nak wrote them
 
-    def edges(self) -> torch.Tensor:
-        """Every edge of the tetrahedra once, i64 [2, E] (smaller node first)."""
+    def tetrahedra(self) -> torch.Tensor:
+        """`tets`, refused by name where the dataset was made before nak wrote them."""
         if self.tets is None:
             raise TrainingInputError(
                 self.name, "the dataset's mesh.safetensors has no tets: rerun its nak datagen command to add them"
             )
-        pairs = torch.cat([self.tets[:, [a, b]] for a, b in ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))])
+        return self.tets
+
+    def edges(self) -> torch.Tensor:
+        """Every edge of the tetrahedra once, i64 [2, E] (smaller node first)."""
+        tets = self.tetrahedra()
+        pairs = torch.cat([tets[:, [a, b]] for a, b in ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))])
         return torch.unique(pairs.sort(dim=1).values, dim=0).T.contiguous()
+
+    @functools.cached_property
+    def inward_depths(self) -> torch.Tensor:
+        """f64 [N]: how much organ lies beneath each node along its inward normal (m), zero inside, as
+        nak computes it for a graph that reads it (surface_depth.py)."""
+        depths = inward_depths(
+            self.positions.numpy(), self.tetrahedra().numpy(), self.normals.numpy(), self.surface_nodes.numpy()
+        )
+        return torch.from_numpy(depths)
 
     @property
     def node_count(self) -> int:

@@ -138,6 +138,7 @@ def write_interaction_graph(
             positions[s.nodes],
             torch.from_numpy(s.displacements),
             config.interaction_geometry,
+            config.interaction_depth,
         )[None]
         for s in check
     ]

@@ -30,7 +30,7 @@ from .errors import TrainingInputError  # noqa: E402
 from .evaluate import read_manifest, refuse_scoring_on_its_training_set  # noqa: E402
 from .export import trace_interaction_graph  # noqa: E402
 from .grasp_served import served_form  # noqa: E402
-from .reduced import INTERACTION_WIDTH, InteractionGraph  # noqa: E402
+from .reduced import GEOMETRY_WIDTH, INTERACTION_WIDTH, InteractionGraph  # noqa: E402
 from .reduced_train import interaction_input, load_reduced  # noqa: E402
 from .served import Nak  # noqa: E402
 from .static_sizes import RELATIVE_TOLERANCE  # noqa: E402
@@ -221,7 +221,8 @@ def timing_requests(mesh: Mesh, samples: list[Sample], width: int) -> list[np.nd
     for sample in samples:
         ids = torch.from_numpy(sample.nodes)
         displacements = torch.from_numpy(sample.displacements)
-        request = interaction_input(mesh, ids, mesh.positions[ids], displacements, geometry=width > INTERACTION_WIDTH)
+        geometry, depth = width > INTERACTION_WIDTH, width > INTERACTION_WIDTH + GEOMETRY_WIDTH
+        request = interaction_input(mesh, ids, mesh.positions[ids], displacements, geometry, depth)
         requests.append(request[None].numpy())
     return requests
 

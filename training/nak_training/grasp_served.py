@@ -86,7 +86,7 @@ class ServedMember(nn.Module):
 
 
 class ServedGraspEncoders(nn.Module):
-    """interaction [1, K, 6] (or [1, K, 10] with surface geometry) → the members' g and, with force heads,
+    """interaction [1, K, 6] (or [1, K, 10] with surface geometry, [1, K, 11] with depth) → the members' g and, with force heads,
     what each head's first layer gives and what its A_k û_k + c_k reads of the point."""
 
     shift: torch.Tensor
@@ -108,7 +108,11 @@ class ServedGraspEncoders(nn.Module):
             if any(not torch.equal(m.get_buffer(name), first.get_buffer(name)) for m in members):
                 raise ValueError(f"the members' {name} differ: they cannot be served as one")
         if any(
-            m.geometry != first.geometry or (m.geometry and not torch.equal(m.v_scale, first.v_scale)) for m in members
+            m.geometry != first.geometry
+            or m.depth != first.depth
+            or (m.geometry and not torch.equal(m.v_scale, first.v_scale))
+            or (m.depth and not torch.equal(m.d_scale, first.d_scale))
+            for m in members
         ):
             raise ValueError("the members read different inputs: they cannot be served as one")
         modes = first.modes

@@ -50,36 +50,45 @@ def mlp(widths: list[int]) -> nn.Sequential:
 
 ENCODERS = ("linear", "pooled", "grasps")
 # An interaction point's position and prescribed displacement; with geometry, its surface's outward unit
-# normal and its lumped nodal volume after them (docs/design.md §7: nak fills what the graph's width asks).
+# normal and its lumped nodal volume after them, and with depth the organ's depth beneath it last
+# (docs/design.md §7: nak fills what the graph's width asks).
 INTERACTION_WIDTH = 6
 GEOMETRY_WIDTH = 4
 
 
 class Encoder(nn.Module):
     """interaction [B, K, 6] (rest position, prescribed displacement; metres), or [B, K, 10] with each
-    point's surface geometry after them (outward unit normal, lumped nodal volume in m³; `geometry`) →
-    g [B, M], with the train split's statistics as buffers (part of the exported graph)."""
+    point's surface geometry after them (outward unit normal, lumped nodal volume in m³; `geometry`), or
+    [B, K, 11] with the organ's depth beneath it last (m; `depth`) → g [B, M], with the train split's
+    statistics as buffers (part of the exported graph)."""
 
     x_mean: torch.Tensor
     x_std: torch.Tensor
     u_scale: torch.Tensor
     g_scale: torch.Tensor
     v_scale: torch.Tensor
+    d_scale: torch.Tensor
 
     # What each point gives a force head without surface geometry (`point_features` counts it in): its
     # normalized position and displacement first.
     BASE_POINT_FEATURES = 6
 
-    def __init__(self, modes: int, geometry: bool = False) -> None:
+    def __init__(self, modes: int, geometry: bool = False, depth: bool = False) -> None:
         super().__init__()
+        if depth and not geometry:
+            raise ValueError("the organ's depth is read after the surface geometry: it needs geometry")
         self.modes = modes
         self.geometry = geometry
-        self.point_features = self.BASE_POINT_FEATURES + (GEOMETRY_WIDTH if geometry else 0)
+        self.depth = depth
+        self.point_features = self.BASE_POINT_FEATURES + (GEOMETRY_WIDTH if geometry else 0) + int(depth)
         for name, shape in [("x_mean", 3), ("x_std", 3), ("u_scale", 3), ("g_scale", modes)]:
             self.register_buffer(name, torch.ones(shape) if name != "x_mean" else torch.zeros(shape))
         if geometry:
             # The train split's mean held-node volume: nodal volumes are about 1e-8 m³.
             self.register_buffer("v_scale", torch.ones(1))
+        if depth:
+            # The train split's mean held-node depth: several centimetres.
+            self.register_buffer("d_scale", torch.ones(1))
 
     def set_statistics(self, **stats: torch.Tensor) -> None:
         for name, value in stats.items():
@@ -87,12 +96,15 @@ class Encoder(nn.Module):
 
     def input_shift_scale(self) -> tuple[torch.Tensor, torch.Tensor]:
         """What the input is normalized by, channel by channel: positions by the mesh's statistics,
-        displacements by their RMS, normals as they are (unit), volumes by their mean."""
+        displacements by their RMS, normals as they are (unit), volumes and depths by their mean."""
         shift = torch.cat([self.x_mean, torch.zeros_like(self.u_scale)])
         scale = torch.cat([self.x_std, self.u_scale])
         if self.geometry:
             shift = torch.cat([shift, shift.new_zeros(GEOMETRY_WIDTH)])
             scale = torch.cat([scale, scale.new_ones(3), self.v_scale])
+        if self.depth:
+            shift = torch.cat([shift, shift.new_zeros(1)])
+            scale = torch.cat([scale, self.d_scale])
         return shift, scale
 
     def normalized(self, interaction: torch.Tensor) -> torch.Tensor:
@@ -194,8 +206,8 @@ class GraspEncoder(Encoder):
     # surface geometry its normal and volume after the displacement (`point_features`).
     BASE_POINT_FEATURES = 10
 
-    def __init__(self, modes: int, width: int, geometry: bool = False) -> None:
-        super().__init__(modes, geometry)
+    def __init__(self, modes: int, width: int, geometry: bool = False, depth: bool = False) -> None:
+        super().__init__(modes, geometry, depth)
         self.register_buffer("r_scale", torch.ones(1))
         self.embed = mlp([self.point_features, width, width, width])
         # What each point sees of the grasps: its own grasp's and the other grasps' mean embeddings, and
@@ -369,11 +381,13 @@ class ReducedNet(nn.Module):
         force_reads_field: bool = False,
         geometry: bool = False,
         force_reads_grasps: bool = False,
+        depth: bool = False,
     ) -> None:
         """`force_width`: the force head's width (None: no force head); `members`: encoders averaged;
         `force_reads_field`: the force head also reads the field's coefficients (normalized), once a set;
         `geometry`: the input carries each point's surface normal and nodal volume (grasp encoders);
-        `force_reads_grasps`: the force head reads what each point sees of the grasps (grasp encoders)."""
+        `force_reads_grasps`: the force head reads what each point sees of the grasps (grasp encoders);
+        `depth`: after the surface geometry, the organ's depth beneath each point (grasp encoders)."""
         super().__init__()
 
         if force_reads_grasps and force_width is None:
@@ -385,7 +399,7 @@ class ReducedNet(nn.Module):
         kinds: dict[str, Callable[[int, int], Encoder]] = {
             "linear": SetEncoder,
             "pooled": PooledEncoder,
-            "grasps": lambda m, w: GraspEncoder(m, w, geometry),
+            "grasps": lambda m, w: GraspEncoder(m, w, geometry, depth),
         }
         encoders = [kinds[encoder](modes, width) for _ in range(members)]
         self.encoder: Encoder = encoders[0] if members == 1 else Ensemble(encoders)

@@ -28,26 +28,36 @@ from .train import Run
 CEILING_MODES = [8, 16, 32, 48, 64, 96, 128, 192, 256]
 
 
-def interaction_batch(mesh: Mesh, split: Split, geometry: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Every sample's interaction points as served, padded: [S, K, 6] f32 (with `geometry`, [S, K, 10]),
-    the mask [S, K] and the held node ids [S, K] (padding repeats a held node)."""
+def interaction_batch(
+    mesh: Mesh, split: Split, geometry: bool, depth: bool = False
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Every sample's interaction points as served, padded: [S, K, 6] f32 (with `geometry`, [S, K, 10];
+    with `depth` too, [S, K, 11]), the mask [S, K] and the held node ids [S, K] (padding repeats a held
+    node)."""
     ids, points, displacements, mask = pad_points(
         mesh.positions,
         [torch.from_numpy(s.nodes) for s in split.samples],
         [torch.from_numpy(s.displacements) for s in split.samples],
     )
-    return interaction_input(mesh, ids, points, displacements, geometry), mask, ids
+    return interaction_input(mesh, ids, points, displacements, geometry, depth), mask, ids
 
 
 def interaction_input(
-    mesh: Mesh, ids: torch.Tensor, points: torch.Tensor, displacements: torch.Tensor, geometry: bool
+    mesh: Mesh,
+    ids: torch.Tensor,
+    points: torch.Tensor,
+    displacements: torch.Tensor,
+    geometry: bool,
+    depth: bool = False,
 ) -> torch.Tensor:
     """What nak feeds an interaction graph for held nodes `ids` [..., K]: their rest positions and
-    prescribed displacements, and with `geometry` their surface normals and lumped nodal volumes
-    (docs/design.md §7), f32 [..., K, 6 or 10]."""
+    prescribed displacements, with `geometry` their surface normals and lumped nodal volumes, and with
+    `depth` too the organ's depth beneath them (docs/design.md §7), f32 [..., K, 6, 10 or 11]."""
     parts = [points, displacements]
     if geometry:
         parts += [mesh.normals[ids], mesh.nodal_volumes[ids].unsqueeze(-1)]
+    if depth:
+        parts.append(mesh.inward_depths[ids].unsqueeze(-1))
     return torch.cat([p.float() for p in parts], dim=-1)
 
 
@@ -141,9 +151,9 @@ class ReducedTrainer(Run):
         self.train_norm = squared_norms(self.train.fields, self.mesh.nodal_volumes).float()
         self.val_norm = squared_norms(self.val.fields, self.mesh.nodal_volumes).float()
         self.mean_norm = self.train_norm.mean()
-        geometry = config.interaction_geometry
-        self.train_points, self.train_mask, train_ids = interaction_batch(self.mesh, self.train, geometry)
-        self.val_points, self.val_mask, val_ids = interaction_batch(self.mesh, self.val, geometry)
+        geometry, depth = config.interaction_geometry, config.interaction_depth
+        self.train_points, self.train_mask, train_ids = interaction_batch(self.mesh, self.train, geometry, depth)
+        self.val_points, self.val_mask, val_ids = interaction_batch(self.mesh, self.val, geometry, depth)
         net = reduced_net(config)
         self.train_forces = self._grasp_forces(self.train, "train", self.train_points.shape[1])
         self.val_forces = self._grasp_forces(self.val, "val", self.val_points.shape[1])
@@ -158,6 +168,9 @@ class ReducedTrainer(Run):
         if geometry:
             held_volumes = self.mesh.nodal_volumes[train_ids][self.train_mask]
             net.encoder.set_statistics(v_scale=held_volumes.mean().reshape(1))
+        if depth:
+            held_depths = self.mesh.inward_depths[train_ids][self.train_mask]
+            net.encoder.set_statistics(d_scale=held_depths.mean().reshape(1))
         volumes = self.mesh.nodal_volumes
         self.val_held = HeldNodes(val_ids, self.val_mask, self.val_targets, volumes)
         self.train_held = (
@@ -305,7 +318,9 @@ class ReducedTrainer(Run):
         assert self.q is not None
         nodes, displacements = self.q.draw(self.config.q_batch)
         ids, points, disp, mask = pad_points(self.mesh.positions, nodes, displacements)
-        interaction = interaction_input(self.mesh, ids, points, disp, self.config.interaction_geometry)
+        interaction = interaction_input(
+            self.mesh, ids, points, disp, self.config.interaction_geometry, self.config.interaction_depth
+        )
         g = self.model.encoder(interaction, mask)
         if self.basis is not None:
             kelvinlet = self.prior.evaluate(self.mesh.positions, points, disp, mask).float()
@@ -357,6 +372,7 @@ def reduced_net(config: TrainConfig) -> ReducedNet:
         config.force_reads_field,
         config.interaction_geometry,
         config.force_reads_grasps,
+        config.interaction_depth,
     )
 
 
