@@ -91,7 +91,7 @@ class TrainConfig:
     interaction_geometry: bool = False
     # With the surface geometry, how much organ lies beneath each held node along its inward normal (m):
     # a push into thin tissue meets the far surface sooner and is answered stiffer. The network could
-    # learn it from positions; given, the val field gained 0.45 points over two seeds (docs/training.md).
+    # learn it from positions (docs/training.md, "The organ's depth beneath a grasp").
     interaction_depth: bool = False
     # POD networks: whether the loss scores the network's field at the nodes the grasps hold too. nak
     # answers those with their prescribed displacement whatever the network gives (docs/design.md §7),
