@@ -14,7 +14,10 @@ use ort::value::TensorRef;
 use super::basis::{self, Basis};
 use super::manifest::{ForcesMode, Manifest, Mode, PriorModel};
 use super::prior::ModelPrior;
-use super::signature::{self, COEFFICIENTS, DISPLACEMENT, FORCES, Input, Output, Signature};
+use super::signature::{
+    self, COEFFICIENTS, DISPLACEMENT, FORCES, INTERACTION_DEPTH_WIDTH, INTERACTION_GEOMETRY_WIDTH, INTERACTION_WIDTH,
+    Input, Output, Signature,
+};
 use super::{LoadContext, ModelLoadError};
 use crate::engine::{
     Answer, DeformationModel, Forces, ModelError, ModelInfo, ModelKind, StageTiming, Target, VOLUMETRIC_LAW_KEY,
@@ -462,7 +465,11 @@ struct NodeGeometry {
 impl NodeGeometry {
     fn new(mesh: &TetMesh, depth: bool) -> Self {
         let depths = if depth { mesh.inward_depths() } else { Vec::new() };
-        let width = if depth { 5 } else { 4 };
+        let width = if depth {
+            INTERACTION_DEPTH_WIDTH
+        } else {
+            INTERACTION_GEOMETRY_WIDTH
+        } - INTERACTION_WIDTH;
         let mut values = Vec::with_capacity(width * mesh.node_count());
         for (node, (n, &v)) in mesh.normals.iter().zip(&mesh.nodal_volumes).enumerate() {
             values.extend([n[0] as f32, n[1] as f32, n[2] as f32, v as f32]);

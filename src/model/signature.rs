@@ -70,9 +70,9 @@ impl Signature {
 }
 
 /// Reads `session`'s signature: one input (`features` [B, N, channels] or `interaction` [B, K, 6], or
-/// [B, K, 10] with each point's surface geometry, or [B, K, 11] with the organ's depth beneath it too) and one output (`displacement` [B, N, 3], or
-/// `coefficients` [B, M] after `interaction`), f32, with B either 1 or symbolic; an interaction graph
-/// may add `forces` [B, K, 3].
+/// [B, K, 10] with each point's surface geometry, or [B, K, 11] with the organ's depth beneath it too)
+/// and one output (`displacement` [B, N, 3], or `coefficients` [B, M] after `interaction`), f32, with
+/// B either 1 or symbolic; an interaction graph may add `forces` [B, K, 3].
 pub fn read(session: &Session, channels: usize, n: usize, origin: &str) -> Result<Signature, ModelLoadError> {
     let inputs: Vec<&Outlet> = session.inputs().iter().collect();
     let input = single(&inputs, "input", [FEATURES, INTERACTION], origin)?;

@@ -723,9 +723,12 @@ def older_graph(net: ReducedNet, interaction: torch.Tensor, directory: Path) -> 
     return directory
 
 
-def request_of(grasps: list[tuple[int, list[float]]], seed: int, geometry: bool = False) -> torch.Tensor:
+def request_of(
+    grasps: list[tuple[int, list[float]]], seed: int, geometry: bool = False, depth: bool = False
+) -> torch.Tensor:
     """interaction [1, K, 6]: for each (point count, displacement), that many points near the phantom;
-    with `geometry`, [1, K, 10]: each with a unit normal and a nodal volume of about 1e-8 m³ too."""
+    with `geometry`, [1, K, 10]: each with a unit normal and a nodal volume of about 1e-8 m³ too; with
+    `depth`, [1, K, 11]: and a depth of a few centimetres beneath it."""
     rng = torch.Generator().manual_seed(seed)
 
     def point(u: list[float]) -> torch.Tensor:
@@ -733,34 +736,40 @@ def request_of(grasps: list[tuple[int, list[float]]], seed: int, geometry: bool 
         if geometry:
             normal = torch.randn(3, generator=rng)
             row += [normal / normal.norm(), 1e-8 * (1.0 + torch.rand(1, generator=rng))]
+        if depth:
+            row.append(0.1 * torch.rand(1, generator=rng))
         return torch.cat(row)
 
     return torch.stack([point(u) for count, u in grasps for _ in range(count)])[None]
 
 
 @pytest.mark.parametrize(
-    "members,force_width,reads_field,geometry,reads_grasps",
+    "members,force_width,reads_field,geometry,reads_grasps,depth",
     [
-        (3, None, False, False, False),
-        (1, 16, False, False, False),
-        (2, 16, True, False, False),
-        (2, 16, False, True, False),
-        (2, 16, False, True, True),
+        (3, None, False, False, False, False),
+        (1, 16, False, False, False, False),
+        (2, 16, True, False, False, False),
+        (2, 16, False, True, False, False),
+        (2, 16, False, True, True, False),
+        (1, 16, False, True, True, True),
     ],
 )
 def test_the_served_form_of_grasp_encoders_answers_as_they_do(
-    members: int, force_width: int | None, reads_field: bool, geometry: bool, reads_grasps: bool
+    members: int, force_width: int | None, reads_field: bool, geometry: bool, reads_grasps: bool, depth: bool
 ) -> None:
     """Per grasp and sharing what members share (grasp_served.py), for one grasp or several, grasps of
     one point, points in any order, the field's coefficients and the forces are the network's, with the
-    points' surface geometry as an input or without, and force heads that read the grasps' context."""
+    points' surface geometry (and the organ's depth) as an input or without, and force heads that read
+    the grasps' context."""
     torch.manual_seed(members)
-    net = ReducedNet("pod", 8, 32, "grasps", force_width, members, reads_field, geometry, reads_grasps)
+    net = ReducedNet("pod", 8, 32, "grasps", force_width, members, reads_field, geometry, reads_grasps, depth)
     statistics = dict(x_mean=torch.tensor([0.05, 0.02, 0.1]), x_std=torch.tensor([0.05, 0.04, 0.06]))
     for member in net.members:
         member.set_statistics(**statistics, u_scale=torch.full((3,), 0.01), g_scale=torch.rand(8) + 0.5)
         if geometry:
             member.set_statistics(v_scale=torch.tensor([1.5e-8]))
+        if depth:
+            member.set_statistics(d_scale=torch.tensor([0.05]))
     net.eval()
     served = ServedGraspNet(net).eval()
     requests = [
@@ -770,7 +779,7 @@ def test_the_served_form_of_grasp_encoders_answers_as_they_do(
         [(3, [0.01, 0.0, 0.0]), (1, [0.0, 0.01, 0.0]), (5, [0.0, 0.0, 0.01])],
     ]
     for seed, grasps in enumerate(requests):
-        interaction = request_of(grasps, seed, geometry)
+        interaction = request_of(grasps, seed, geometry, depth)
         shuffled = interaction[:, torch.randperm(interaction.shape[1])]
         with torch.no_grad():
             expected, expected_forces = net.encode(interaction)

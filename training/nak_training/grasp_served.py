@@ -86,8 +86,9 @@ class ServedMember(nn.Module):
 
 
 class ServedGraspEncoders(nn.Module):
-    """interaction [1, K, 6] (or [1, K, 10] with surface geometry, [1, K, 11] with depth) → the members' g and, with force heads,
-    what each head's first layer gives and what its A_k û_k + c_k reads of the point."""
+    """interaction [1, K, 6] (or [1, K, 10] with surface geometry, [1, K, 11] with depth too) → the
+    members' g and, with force heads, what each head's first layer gives and what its A_k û_k + c_k
+    reads of the point."""
 
     shift: torch.Tensor
     scale: torch.Tensor
