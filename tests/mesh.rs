@@ -149,7 +149,7 @@ fn a_box_is_as_deep_beneath_each_face_as_it_is_across() {
     // crosses the box to the opposite face. Edge and corner nodes (averaged normals) cross it slanted.
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures");
     let m = mesh::load(&MeshSource::File(dir.join("box.msh"))).unwrap();
-    let depths = m.inward_depths();
+    let depths = m.inward_depths().to_vec();
     let extent = [0.10, 0.06, 0.04];
     let mut checked = [0; 3];
     for &n in &m.surface_nodes {

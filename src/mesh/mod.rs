@@ -18,6 +18,7 @@ pub mod topology;
 pub mod vtk;
 
 use std::collections::{BTreeMap, HashMap};
+use std::sync::OnceLock;
 
 pub use config::{Body, GraspRegion, Material, MeshConfig, PriorParams, Sampling, VolumetricLaw};
 pub use source::{EMBEDDED_NAME, MeshSource, config_text, load};
@@ -130,6 +131,8 @@ pub struct TetMesh {
     pub nodal_volumes: Vec<f64>,
     /// BLAKE3 of the geometry and labels (not the materials): keys caches and model manifests.
     pub content_hash: String,
+    /// `inward_depths`, computed when first asked (only graphs that read it need it).
+    inward_depths: OnceLock<Vec<f64>>,
 }
 
 /// Tetrahedra smaller than this fraction of the mean volume are degenerate.
@@ -141,9 +144,11 @@ impl TetMesh {
     }
 
     /// Per node, how much organ lies beneath it (m): the distance along its inward normal to where
-    /// that ray leaves the organ; zero inside. Computed on each call (a fraction of a second).
-    pub fn inward_depths(&self) -> Vec<f64> {
-        depth::inward_depths(&self.surface, &self.positions, &self.normals, &self.surface_nodes)
+    /// that ray leaves the organ; zero inside. Computed on the first call (a fraction of a second on
+    /// the phantom), once for every model that reads it.
+    pub fn inward_depths(&self) -> &[f64] {
+        self.inward_depths
+            .get_or_init(|| depth::inward_depths(&self.surface, &self.positions, &self.normals, &self.surface_nodes))
     }
 
     /// Whether `node` is in the `fixed` set (held by the fixture: zero displacement).
@@ -270,6 +275,7 @@ impl TetMesh {
             tet_volumes,
             nodal_volumes,
             content_hash,
+            inward_depths: OnceLock::new(),
         })
     }
 }

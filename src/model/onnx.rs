@@ -464,7 +464,7 @@ struct NodeGeometry {
 
 impl NodeGeometry {
     fn new(mesh: &TetMesh, depth: bool) -> Self {
-        let depths = if depth { mesh.inward_depths() } else { Vec::new() };
+        let depths = if depth { mesh.inward_depths() } else { &[] };
         let width = if depth {
             INTERACTION_DEPTH_WIDTH
         } else {
