@@ -55,9 +55,9 @@ class ServedMember(nn.Module):
     """One grasp encoder's layers, its first layers of `matrices` and `head` split by what they read; with
     a force head, the head's first layer appended to that of `matrices` (its outputs after `width`)."""
 
-    def __init__(self, member: GraspEncoder, force: ForceHead | None, force_context: int, reads_field: bool) -> None:
+    def __init__(self, member: GraspEncoder, force: ForceHead | None, force_context: int) -> None:
         """`force_context`: how many values of each grasp's context the force head reads after a point's
-        features (0: none); `reads_field`: it reads the member's coefficients last."""
+        features (0: none); what it reads of the field after the summary is its own (`ServedForceHead`)."""
         super().__init__()
         features, context = member.point_features, member.context_features
         self.embed = member.embed
@@ -67,7 +67,6 @@ class ServedMember(nn.Module):
         blocks = [matrices.weight[:, :features], matrices.weight[:, features : features + context]]
         blocks.append(matrices.weight[:, features + context :])
         bias: torch.Tensor = matrices.bias
-        self.force_field: Part | None = None
         if force is not None:
             w = force.first.weight
             summary = blocks[2].shape[1]
@@ -76,7 +75,6 @@ class ServedMember(nn.Module):
             reads.append(w[:, set_start : set_start + summary])
             blocks = [torch.cat(pair) for pair in zip(blocks, reads, strict=True)]
             bias = torch.cat([bias, force.first.bias])
-            self.force_field = Part(w[:, set_start + summary :]) if reads_field else None
         self.matrices_points, self.matrices_context = Part(blocks[0]), Part(blocks[1])
         self.matrices_summary = Part(blocks[2], bias)
         self.matrices_rest = member.matrices[1:]
@@ -99,9 +97,7 @@ class ServedGraspEncoders(nn.Module):
     tile_bias: torch.Tensor | None
     triples: torch.Tensor
 
-    def __init__(
-        self, members: list[GraspEncoder], heads: list[ForceHead], force_context: int = 0, reads_field: bool = False
-    ) -> None:
+    def __init__(self, members: list[GraspEncoder], heads: list[ForceHead], force_context: int = 0) -> None:
         """`heads`: none, or one force head a member (see `ServedMember` for the rest)."""
         super().__init__()
         first = members[0]
@@ -135,7 +131,7 @@ class ServedGraspEncoders(nn.Module):
         self.register_buffer("triples", torch.eye(modes).repeat_interleave(3, dim=0))
         members_heads = heads if heads else [None] * len(members)
         self.members = nn.ModuleList(
-            ServedMember(m, h, force_context, reads_field) for m, h in zip(members, members_heads, strict=True)
+            ServedMember(m, h, force_context) for m, h in zip(members, members_heads, strict=True)
         )
 
     def forward(self, interaction: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor], torch.Tensor | None]:
@@ -184,19 +180,24 @@ class ServedGraspEncoders(nn.Module):
 
 class ServedForceHead(nn.Module):
     """A force head (`reduced.ForceHead`) after its first layer (computed with its member's, see
-    `ServedMember`): [K, H] → its last layer [K, 12], A_k row-major then c_k, f_scale folded in."""
+    `ServedMember`) but for the columns that read the field: [K, H] and the member's g [1, M] → its last
+    layer [K, 12], A_k row-major then c_k, f_scale folded in."""
 
     last_weight: torch.Tensor
     last_bias: torch.Tensor
 
-    def __init__(self, head: ForceHead) -> None:
+    def __init__(self, head: ForceHead, coefficients: int = 0) -> None:
+        """`coefficients`: how many of the field's coefficients the head reads last (0: none)."""
         super().__init__()
+        self.field = Part(head.first.weight[:, -coefficients:]) if coefficients else None
         self.hidden = head.rest[:-1]
         last = cast(nn.Linear, head.rest[-1])
         self.register_buffer("last_weight", (last.weight.T * head.f_scale).detach().clone())  # [H, 12]
         self.register_buffer("last_bias", (last.bias * head.f_scale).detach().clone())
 
-    def forward(self, first: torch.Tensor) -> torch.Tensor:
+    def forward(self, first: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+        if self.field is not None:
+            first = first + self.field(g)
         return self.hidden(first) @ self.last_weight + self.last_bias
 
 
@@ -204,30 +205,26 @@ class ServedGraspNet(nn.Module):
     """A grasp-encoder network as served: interaction [1, K, 6 or 10] → g [1, M] and, with force heads, the
     force on each point [1, K, 3] (the members' means, as `ReducedNet.encode` gives them)."""
 
-    sums: torch.Tensor
+    sums: torch.Tensor | None
 
     def __init__(self, net: ReducedNet) -> None:
         super().__init__()
         members = served_members(net)
         context = members[0].context_features if net.force_reads_grasps else 0
-        self.encoders = ServedGraspEncoders(members, net.force_heads, context, net.force_reads_field)
-        self.heads = nn.ModuleList(ServedForceHead(head) for head in net.force_heads)
+        self.encoders = ServedGraspEncoders(members, net.force_heads, context)
+        coefficients = members[0].modes if net.force_reads_field else 0
+        self.heads = nn.ModuleList(ServedForceHead(head, coefficients) for head in net.force_heads)
         # The sum of each row of A (as ForceHead takes A û), then c as it is: [1, 12, 3], so that the
         # product is the output's [1, K, 3] itself.
-        rows = net.force_heads[0].row_sums if net.force_heads else torch.zeros(9, 3)
-        self.register_buffer("sums", torch.cat([rows, torch.eye(3)])[None])
+        heads = net.force_heads
+        self.register_buffer("sums", torch.cat([heads[0].row_sums, torch.eye(3)])[None] if heads else None)
 
     def forward(self, interaction: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
         g, force_firsts, force_shares = self.encoders(interaction)
         field = (g * self.encoders.g_scale).mean(0, keepdim=True)
-        if force_shares is None:
+        if force_shares is None or self.sums is None:
             return field, None
-        outs = []
-        for i, (head, first) in enumerate(zip(self.heads, force_firsts, strict=True)):
-            member = cast(ServedMember, self.encoders.members[i])
-            if member.force_field is not None:
-                first = first + member.force_field(g[i : i + 1])
-            outs.append(head(first))
+        outs = [head(first, g[i : i + 1]) for i, (head, first) in enumerate(zip(self.heads, force_firsts, strict=True))]
         # The members' mean before the product, which is linear in it: one head's output as it is.
         out = outs[0] if len(outs) == 1 else torch.stack(outs).mean(0)
         return field, (out * force_shares) @ self.sums
