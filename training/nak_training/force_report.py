@@ -247,7 +247,7 @@ def head_cost(model: Path, runs: Path, mesh: Mesh, samples: list[Sample], tmp: P
 def paired_times(graphs: tuple[Path, Path], requests: list[np.ndarray]) -> np.ndarray:
     """[2, TIMING_ROUNDS, requests] µs: each request through both graphs in turn, the order alternating,
     in TIMING_ROUNDS rounds; each round opens both sessions anew, the one opened first alternating too
-    (which session was opened first moved the difference between two copies of one graph by 4–5 µs,
+    (which session was opened first moved the difference between two copies of one graph by 4–8 µs,
     as much as half a head), and runs every request through both once before it is timed. The time
     is the calling thread's CPU time (ONNX Runtime runs a one-thread session on it), which other work
     on the machine does not stretch as it stretches the wall clock."""
